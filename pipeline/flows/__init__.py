@@ -1,0 +1,1 @@
+"""markcal.pipeline.flows."""

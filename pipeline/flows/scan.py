@@ -1,0 +1,270 @@
+"""The scan flow: 3D scan of a galvo-marked plate -> deviations, correction model, tables.
+
+Paper 004 sec. 2.2-2.8: plane fit, projection, detection, 2D -> 3D,
+registration, deviation, RBF network, corrected targets, joint commands.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from markcal.stages import detect, galvo, rbf
+from markcal.stages.deviation import deviation_stats, grid_nodes
+from markcal.stages.errors import MarkcalError
+from markcal.stages.io import read_cloud
+from markcal.stages.plane import Plane, fit_plane, from_plane
+from markcal.stages.plate import PlateSpec, nominal_grid
+from markcal.stages.project import Raster, project
+from markcal.stages.register import index_grid, rigid_fit, robust_rigid_fit
+
+#: spreads tried by the cross-validation, in units of the grid pitch
+SPREADS_PER_PITCH = (1.0, 1.5, 2.0, 3.0, 4.5, 6.5, 9.0)
+#: MSE goals tried (mm^2); the paper used 5e-4
+MSE_GOALS_MM2 = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 5e-4, 1e-3)
+#: areas of paper Table 1: name -> half width (None: the full field)
+AREAS = {"full": None, "inner_150": 75.0, "inner_50": 25.0}
+
+
+@dataclass(frozen=True)
+class ScanOptions:
+    """Settings of the scan flow. Lengths mm."""
+
+    pixel_mm: float = 0.1
+    median_px: int = 5
+    folds: int = 5
+    seed: int = 0
+    max_neurons: int = 200
+    validation: bool = False
+
+
+@dataclass(frozen=True)
+class ScanResult:
+    """Everything the scan flow found; ``reports`` turns it into files.
+
+    ``fiducials`` maps column name -> array, one entry per detected
+    fiducial (see README for the columns). Positions ``x_meas_mm`` etc. are in
+    the GLS frame after registration; ``*_scanner_mm`` in the scanner frame.
+    """
+
+    source: str
+    spec: PlateSpec
+    options: ScanOptions
+    fiducials: dict
+    missing_ids: list
+    stats: dict                     # area -> deviation_stats (measured deviations)
+    model: rbf.RBFModel             # wanted position -> command offset (trained P -> Q - P)
+    model_eq9: rbf.RBFModel         # paper eq. 9: nominal Q -> delta
+    forward_model: rbf.RBFModel     # nominal Q -> landing error P - Q (for the estimates)
+    selection: rbf.Selection
+    grid_xy_mm: np.ndarray          # (n, 2) correction grid nodes
+    grid_dxy_mm: np.ndarray         # (n, 2) command offsets
+    targets: dict                   # corrected targets, column -> array
+    predicted: dict                 # method -> deviation_stats of the predicted residual
+    summary: dict
+    plane: Plane = field(repr=False)
+    raster: Raster = field(repr=False)
+    edges: detect.EdgeImages = field(repr=False)
+    preview_xyz_mm: np.ndarray = field(repr=False)
+    preview_intensity: np.ndarray = field(repr=False)
+    registration_angle_deg: float = 0.0
+
+
+def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, progress=None) -> ScanResult:
+    """Run the scan flow on one cloud.
+
+    Parameters
+    ----------
+    cloud_path : path
+        PLY, PCD, CSV/TXT or NPY cloud in mm (scanner frame).
+    spec : PlateSpec
+        What was marked.
+    progress : callable, optional
+        Called with a short text before each step.
+
+    Raises
+    ------
+    MarkcalError
+        Bad input; the message names the file.
+    """
+    opt = options or ScanOptions()
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    try:
+        say("reading cloud")
+        cloud = read_cloud(cloud_path)
+        return _run(cloud, str(cloud_path), spec, opt, say, t0)
+    except MarkcalError as exc:
+        raise exc.with_path(cloud_path) from None
+
+
+def _dedupe(uv, score, min_dist):
+    """Keep the best-scoring centre of each cluster closer than ``min_dist``."""
+    order = np.argsort(-score)
+    tree = cKDTree(uv)
+    taken = np.zeros(len(uv), bool)
+    keep = []
+    for i in order:
+        if taken[i]:
+            continue
+        keep.append(i)
+        taken[tree.query_ball_point(uv[i], min_dist)] = True
+    return np.array(sorted(keep), int)
+
+
+def _detect(raster, spec, opt, say):
+    say("median filter, Canny, closing")
+    filtered = detect.filter_raster(raster, opt.median_px)
+    edges = detect.edge_images(filtered)
+    say("circular Hough transform")
+    r_px = max(spec.ring_radii_mm) / opt.pixel_mm
+    coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / opt.pixel_mm,
+                                  2 * spec.n_fiducials + 20)
+    if len(coarse) == 0:
+        raise MarkcalError("no circles found on the plate")
+    say(f"sub-pixel ring fits of {len(coarse)} candidates")
+    fit = detect.refine_rings(raster, raster.to_mm(coarse), spec.ring_radii_mm)
+    return edges, fit
+
+
+def _run(cloud, source, spec, opt, say, t0):
+    say("robust plane fit")
+    plane = fit_plane(cloud.xyz_mm, seed=opt.seed)
+    say("projecting onto the plate plane")
+    raster = project(cloud.xyz_mm, cloud.intensity, plane, opt.pixel_mm)
+    edges, fit = _detect(raster, spec, opt, say)
+    n_exp = spec.n_fiducials
+    ok = fit.ok
+    if ok.sum() >= 3:
+        scale = float(np.median(fit.radius_scale[ok]))
+    else:
+        scale = 1.0
+    if ok.sum() < n_exp / 2:
+        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges, spec, opt))
+    if abs(scale - 1) > 0.04:
+        raise MarkcalError(f"ring radii in the scan are {scale:.3f} x the spec's "
+                           f"{list(spec.ring_radii_mm)} mm: wrong plate spec?")
+    idx = np.flatnonzero(ok)
+    idx = idx[_dedupe(fit.uv_mm[idx], fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9),
+                      0.5 * spec.pitch_mm)]
+    say("identifying rows and columns")
+    uv = fit.uv_mm[idx]
+    gi = index_grid(uv, spec.rows, spec.cols, spec.pitch_mm)
+    on = gi.row >= 0
+    idx, uv, row, col = idx[on], uv[on], gi.row[on], gi.col[on]
+    ids = row * spec.cols + col
+    # two candidates on one site: keep the better fit
+    order = np.lexsort((-fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9), ids))
+    first = np.r_[True, ids[order][1:] != ids[order][:-1]]
+    sel = order[first]
+    idx, uv, row, col, ids = idx[sel], uv[sel], row[sel], col[sel], ids[sel]
+    if len(ids) < n_exp / 2:
+        raise MarkcalError(f"only {len(ids)} of {n_exp} fiducials could be placed on the grid")
+
+    say("rigid registration to the nominal grid")
+    _, _, q_all = nominal_grid(spec)
+    q = q_all[ids]
+    tf, used = robust_rigid_fit(uv, q, outlier_mm=0.3 * spec.pitch_mm)
+    mirrored = rigid_fit(uv[used], q[used], allow_reflection=True)
+    if mirrored.reflection:
+        r_proper = np.sqrt(np.mean(np.sum((tf.apply(uv[used]) - q[used]) ** 2, axis=1)))
+        r_mirror = np.sqrt(np.mean(np.sum((mirrored.apply(uv[used]) - q[used]) ** 2, axis=1)))
+        if r_mirror < 0.5 * r_proper:
+            raise MarkcalError("the grid registers only through a reflection: the scanner's x and y "
+                               "axes are mirrored relative to the galvo's")
+    if used.sum() < n_exp / 2:
+        raise MarkcalError("registration failed: too few fiducials agree with the nominal grid")
+    p = tf.apply(uv)
+    delta = q - p
+    xyz = from_plane(uv, plane)
+
+    fid = {
+        "id": ids, "row": row, "col": col,
+        "x_nom_mm": q[:, 0], "y_nom_mm": q[:, 1],
+        "x_meas_mm": p[:, 0], "y_meas_mm": p[:, 1],
+        "dx_mm": delta[:, 0], "dy_mm": delta[:, 1],
+        "x_scanner_mm": xyz[:, 0], "y_scanner_mm": xyz[:, 1], "z_scanner_mm": xyz[:, 2],
+        "ring_radius_scale": fit.radius_scale[idx], "line_width_mm": fit.width_mm[idx],
+        "contrast": fit.contrast[idx], "fit_rms": fit.rms[idx], "n_samples": fit.n_points[idx],
+        "used_in_registration": used.astype(int),
+    }
+    missing = sorted(set(range(n_exp)) - set(ids.tolist()))
+    stats = {name: deviation_stats(q, delta, hw) for name, hw in AREAS.items()}
+
+    say("RBF network: cross-validated spread and MSE goal")
+    t_rbf = time.perf_counter()
+    spreads = np.array(SPREADS_PER_PITCH) * spec.pitch_mm
+    sel_ = rbf.select(p, delta, spreads, MSE_GOALS_MM2, opt.folds, opt.seed, opt.max_neurons)
+    model = rbf.train(p, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+    rbf_s = time.perf_counter() - t_rbf
+    model_eq9 = rbf.train(q, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+    forward = rbf.train(q, -delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+
+    say("correction grid and corrected targets")
+    hx, hy = spec.half_extent_mm
+    nodes = grid_nodes(hx, hy, spec.grid_step_mm)
+    dxy = model(nodes)
+    k = q_all + model(q_all)
+    ax, ay, dfr = galvo.inverse(k[:, 0], k[:, 1], spec.d_mm, spec.e_mm)
+    r_all, c_all, _ = nominal_grid(spec)
+    targets = {"id": np.arange(n_exp), "row": r_all, "col": c_all,
+               "x_target_mm": q_all[:, 0], "y_target_mm": q_all[:, 1],
+               "x_cmd_mm": k[:, 0], "y_cmd_mm": k[:, 1],
+               "alpha_x_deg": np.degrees(ax), "alpha_y_deg": np.degrees(ay), "dfr_mm": dfr}
+    # predicted residuals with the fitted forward model: landing(K) ~ K + fwd(K)
+    inside = np.all(np.abs(nodes) <= [hx, hy], axis=1)
+    tgt = nodes[inside]
+    predicted = {}
+    for name, cmd in (("inverse", tgt + model(tgt)), ("eq9", tgt + model_eq9(tgt))):
+        land = cmd + forward(cmd)
+        predicted[name] = deviation_stats(tgt, land - tgt)
+
+    full = stats["full"]
+    summary = {
+        "source": source,
+        "kind": "validation" if opt.validation else "calibration",
+        "n_expected": n_exp, "n_detected": int(len(ids)), "n_missing": len(missing),
+        "missing_ids": missing,
+        "rms_mm": full["rms_mm"], "max_mm": full["max_mm"],
+        "rms_x_mm": full["rms_x_mm"], "rms_y_mm": full["rms_y_mm"],
+        "max_x_mm": full["max_x_mm"], "max_y_mm": full["max_y_mm"],
+        "rms_150_mm": stats["inner_150"].get("rms_mm"), "max_150_mm": stats["inner_150"].get("max_mm"),
+        "rms_50_mm": stats["inner_50"].get("rms_mm"), "max_50_mm": stats["inner_50"].get("max_mm"),
+        "cv_rmse_mm": sel_.cv_rmse_mm, "cv_rmse_std_mm": sel_.cv_rmse_std_mm,
+        "n_neurons": model.n_neurons, "spread_mm": sel_.spread_mm, "mse_goal_mm2": sel_.mse_goal_mm2,
+        "predicted_residual_rms_mm": predicted["inverse"]["rms_mm"],
+        "predicted_residual_eq9_rms_mm": predicted["eq9"]["rms_mm"],
+        "plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
+        "plane_inlier_fraction": plane.inlier_fraction,
+        "in_plane_rotation_deg": -tf.angle_deg,
+        "n_points": int(len(cloud.xyz_mm)),
+        "rbf_training_s": rbf_s,
+        "runtime_s": time.perf_counter() - t0,
+    }
+    step = max(1, len(cloud.xyz_mm) // 150_000)
+    return ScanResult(
+        source=source, spec=spec, options=opt, fiducials=fid, missing_ids=missing, stats=stats,
+        model=model, model_eq9=model_eq9, forward_model=forward, selection=sel_,
+        grid_xy_mm=nodes, grid_dxy_mm=dxy, targets=targets, predicted=predicted, summary=summary,
+        plane=plane, raster=raster, edges=edges,
+        preview_xyz_mm=cloud.xyz_mm[::step].astype(np.float32),
+        preview_intensity=cloud.intensity[::step].astype(np.float32),
+        registration_angle_deg=tf.angle_deg)
+
+
+def _few_found_message(n_found, n_exp, edges, spec, opt):
+    """Say how many were found and, when the discs have another size, what size."""
+    from scipy import ndimage
+    lab, n = ndimage.label(edges.filled)
+    msg = f"only {n_found} of {n_exp} fiducials found (fewer than half the grid)"
+    if n:
+        area = np.bincount(lab.ravel())[1:] * opt.pixel_mm ** 2
+        big = area[area > 2.0]
+        if len(big) >= 4:
+            r = float(np.sqrt(np.median(big) / np.pi))
+            if abs(r / max(spec.ring_radii_mm) - 1) > 0.1:
+                msg += (f"; the marks in the scan have an outer radius of about {r:.2f} mm, "
+                        f"the plate spec says {max(spec.ring_radii_mm)} mm")
+    return msg

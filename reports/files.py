@@ -1,0 +1,102 @@
+"""Atomic file writers: write to a temporary name in the same folder, then rename."""
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import tempfile
+
+import numpy as np
+
+
+def atomic_write_bytes(path, data: bytes) -> None:
+    """Write ``data`` to ``path`` so that a reader never sees a half file."""
+    path = os.fspath(path)
+    folder = os.path.dirname(os.path.abspath(path))
+    os.makedirs(folder, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".part", dir=folder)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def atomic_write_text(path, text: str) -> None:
+    atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _fmt(v):
+    if isinstance(v, (float, np.floating)):
+        return repr(float(v)) if np.isfinite(v) else ""
+    if isinstance(v, (np.integer,)):
+        return str(int(v))
+    return str(v)
+
+
+def write_csv(path, columns: dict) -> None:
+    """Write a dict of equal-length columns as CSV with a header row."""
+    names = list(columns)
+    n = len(next(iter(columns.values()))) if columns else 0
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(names)
+    cols = [np.asarray(columns[k]) for k in names]
+    for i in range(n):
+        w.writerow([_fmt(c[i]) for c in cols])
+    atomic_write_text(path, buf.getvalue())
+
+
+def read_csv(path) -> dict:
+    """Read a CSV written by ``write_csv`` into float (or str) columns."""
+    with open(path, encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    names = rows[0]
+    out = {}
+    for j, k in enumerate(names):
+        vals = [r[j] for r in rows[1:]]
+        try:
+            out[k] = np.array([float(v) if v != "" else np.nan for v in vals])
+        except ValueError:
+            out[k] = np.array(vals)
+    return out
+
+
+def _jsonable(o):
+    if isinstance(o, dict):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, np.integer):
+        return int(o)
+    if isinstance(o, (float, np.floating)):
+        return float(o) if np.isfinite(o) else None
+    return o
+
+
+def write_json(path, obj) -> None:
+    atomic_write_text(path, json.dumps(_jsonable(obj), indent=2) + "\n")
+
+
+def write_ply(path, xyz_mm: np.ndarray, intensity: np.ndarray) -> None:
+    """Binary little-endian PLY with float32 x, y, z, intensity."""
+    from plyfile import PlyData, PlyElement
+    v = np.empty(len(xyz_mm), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("intensity", "<f4")])
+    v["x"], v["y"], v["z"] = xyz_mm[:, 0], xyz_mm[:, 1], xyz_mm[:, 2]
+    v["intensity"] = intensity
+    buf = io.BytesIO()
+    PlyData([PlyElement.describe(v, "vertex")], text=False,
+            comments=["markcal synthetic laser-line scan; units mm"]).write(buf)
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def write_npy(path, array: np.ndarray) -> None:
+    buf = io.BytesIO()
+    np.save(buf, array, allow_pickle=False)
+    atomic_write_bytes(path, buf.getvalue())

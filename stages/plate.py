@@ -1,0 +1,48 @@
+"""Plate spec and the nominal fiducial grid."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class PlateSpec:
+    """What the GLS was asked to mark, as in PLATE.toml.
+
+    Lengths in mm. The grid is centred on the galvo origin; row r has
+    y = (r - (rows-1)/2) * pitch, column c has x = (c - (cols-1)/2) * pitch.
+    """
+
+    rows: int = 19
+    cols: int = 19
+    pitch_mm: float = 190.0 / 18.0
+    ring_radii_mm: tuple = (2.5, 2.7)
+    d_mm: float = 490.0
+    e_mm: float = 22.0
+    grid_step_mm: float = 1.0
+
+    @property
+    def n_fiducials(self) -> int:
+        return self.rows * self.cols
+
+    @property
+    def half_extent_mm(self) -> tuple:
+        """Half widths (x, y) of the fiducial field, centre to outermost centre."""
+        return ((self.cols - 1) / 2 * self.pitch_mm, (self.rows - 1) / 2 * self.pitch_mm)
+
+
+def nominal_grid(spec: PlateSpec) -> tuple:
+    """Nominal fiducial centres in the GLS frame.
+
+    Returns
+    -------
+    rows, cols : ndarray of int, shape (n,)
+        Index of each fiducial; id = row * cols + col.
+    xy_mm : ndarray, shape (n, 2)
+        Nominal (x, y) in mm, GLS frame.
+    """
+    r, c = np.divmod(np.arange(spec.rows * spec.cols), spec.cols)
+    x = (c - (spec.cols - 1) / 2.0) * spec.pitch_mm
+    y = (r - (spec.rows - 1) / 2.0) * spec.pitch_mm
+    return r, c, np.column_stack([x, y])

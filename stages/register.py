@@ -1,0 +1,136 @@
+"""Grid identification and rigid registration of detected fiducials."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import MarkcalError
+
+
+@dataclass(frozen=True)
+class GridIndex:
+    """Row and column of each detected centre (-1: not on the grid)."""
+
+    row: np.ndarray
+    col: np.ndarray
+    rotation_deg: float
+    pitch_mm: float
+
+
+def index_grid(uv_mm: np.ndarray, rows: int, cols: int, pitch_mm: float,
+               max_rotation_deg: float = 45.0, pitch_tolerance: float = 0.04) -> GridIndex:
+    """Assign each detected centre its row and column.
+
+    The grid may be turned by any angle within +-45 deg (the plate spec allows
+    +-15 deg), shifted, and have missing fiducials. Row index grows with v,
+    column index with u.
+
+    Raises
+    ------
+    MarkcalError
+        If the spacing of the detected centres does not match ``pitch_mm``.
+    """
+    uv = np.asarray(uv_mm, float)
+    n = len(uv)
+    if n < 4:
+        raise MarkcalError(f"only {n} fiducials detected: cannot identify the grid")
+    tree = cKDTree(uv)
+    dist, nb = tree.query(uv, k=5)
+    nn = np.median(dist[:, 1])
+    if abs(nn / pitch_mm - 1) > pitch_tolerance:
+        raise MarkcalError(f"fiducial pitch in the scan is {nn:.3f} mm but the plate spec says "
+                           f"{pitch_mm:.3f} mm")
+    ok = np.abs(dist[:, 1:] / pitch_mm - 1) < 0.25
+    vec = uv[nb[:, 1:]] - uv[:, None, :]
+    ang = np.arctan2(vec[..., 1], vec[..., 0])[ok]
+    theta = np.angle(np.sum(np.exp(4j * ang))) / 4
+    if abs(np.degrees(theta)) > max_rotation_deg:
+        raise MarkcalError(f"grid is turned by {np.degrees(theta):.1f} deg, more than allowed")
+    c, s = np.cos(-theta), np.sin(-theta)
+    local = uv @ np.array([[c, s], [-s, c]]) / pitch_mm
+    # lattice offset per axis (circular mean of fractional parts), then integer indices
+    off = np.angle(np.exp(2j * np.pi * local).sum(axis=0)) / (2 * np.pi)
+    k = np.rint(local - off).astype(int)
+    resid = np.abs(local - off - k).max(axis=1)
+    good = resid < 0.35
+    col = np.full(n, -1)
+    row = np.full(n, -1)
+    for axis, size, out in ((0, cols, col), (1, rows, row)):
+        kk = k[good, axis]
+        lo, hi = np.percentile(kk, [0, 100]).astype(int) if len(kk) else (0, 0)
+        span = hi - lo + 1
+        if span > size:
+            # spurious far detections: keep the densest window of `size`
+            counts = [np.sum((kk >= a) & (kk < a + size)) for a in range(lo, hi - size + 2)]
+            lo = lo + int(np.argmax(counts))
+        elif span < size:
+            # whole edge rows missing: centre the detected block
+            lo = lo - (size - span) // 2
+        out[good] = k[good, axis] - lo
+    inside = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
+    col[~inside] = -1
+    row[~inside] = -1
+    return GridIndex(row=row, col=col, rotation_deg=float(np.degrees(theta)), pitch_mm=float(nn))
+
+
+@dataclass(frozen=True)
+class Rigid2D:
+    """x_target = R @ x + t (mm). ``reflection`` is True if R has det -1."""
+
+    rotation: np.ndarray
+    translation_mm: np.ndarray
+
+    @property
+    def angle_deg(self) -> float:
+        return float(np.degrees(np.arctan2(self.rotation[1, 0], self.rotation[0, 0])))
+
+    @property
+    def reflection(self) -> bool:
+        return bool(np.linalg.det(self.rotation) < 0)
+
+    def apply(self, xy_mm: np.ndarray) -> np.ndarray:
+        return np.asarray(xy_mm, float) @ self.rotation.T + self.translation_mm
+
+
+def rigid_fit(src_mm: np.ndarray, dst_mm: np.ndarray, weights=None,
+              allow_reflection: bool = False) -> Rigid2D:
+    """Least-squares rigid transform src -> dst (Kabsch), optionally weighted."""
+    p = np.asarray(src_mm, float)
+    q = np.asarray(dst_mm, float)
+    w = np.ones(len(p)) if weights is None else np.asarray(weights, float)
+    w = w / w.sum()
+    pc, qc = w @ p, w @ q
+    h = (p - pc).T @ ((q - qc) * w[:, None])
+    u, _, vt = np.linalg.svd(h)
+    dmat = np.eye(2)
+    if not allow_reflection and np.linalg.det(vt.T @ u.T) < 0:
+        dmat[1, 1] = -1
+    rot = vt.T @ dmat @ u.T
+    return Rigid2D(rotation=rot, translation_mm=qc - rot @ pc)
+
+
+def robust_rigid_fit(src_mm: np.ndarray, dst_mm: np.ndarray, outlier_mm: float = 3.0,
+                     n_iter: int = 3) -> tuple:
+    """Least-squares rigid fit over all pairs, leaving out gross mismatches.
+
+    The residuals of a galvo grid are its distortion (systematic, up to a few
+    mm), so all pairs count equally; only pairs farther than ``outlier_mm``
+    from the fit (a wrong index) are dropped and the fit repeated.
+
+    Returns
+    -------
+    Rigid2D, ndarray of bool
+        The transform and which pairs were used.
+    """
+    used = np.ones(len(src_mm), bool)
+    tf = rigid_fit(src_mm, dst_mm)
+    for _ in range(n_iter):
+        r = np.linalg.norm(tf.apply(src_mm) - dst_mm, axis=1)
+        new = r < outlier_mm
+        if new.sum() < 3 or np.array_equal(new, used):
+            break
+        used = new
+        tf = rigid_fit(src_mm[used], dst_mm[used])
+    return tf, used
