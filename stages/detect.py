@@ -77,6 +77,42 @@ def hough_centres(filled: np.ndarray, radius_px: float, min_distance_px: float,
     return (peaks[:, ::-1].astype(float) + 0.5) * f - 0.5
 
 
+def ring_template(radii_px, width_px: float = 1.2) -> np.ndarray:
+    """Dark double ring on a zero-mean background, for template matching."""
+    half = int(np.ceil(max(radii_px) + 4 * width_px))
+    yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
+    rho = np.hypot(xx, yy)
+    t = -sum(np.exp(-0.5 * ((rho - r) / width_px) ** 2) for r in radii_px)
+    return (t - t.mean()).astype(np.float32)
+
+
+def match_centres(filtered: np.ndarray, colrow: np.ndarray, radii_px, search_px: int = 12) -> np.ndarray:
+    """Move coarse centres to the best normalised match of the ring template.
+
+    Hough centres of discs that a scratch or a dropout has deformed can be a
+    few tenths of a mm off; the double ring's own pattern pins them to a pixel.
+
+    Returns
+    -------
+    ndarray, shape (k, 2)
+        (col, row) pixel centres.
+    """
+    tpl = ring_template(radii_px)
+    half = tpl.shape[0] // 2
+    h, w = filtered.shape
+    img = filtered.astype(np.float32)
+    out = np.asarray(colrow, float).copy()
+    for k, (c, r) in enumerate(np.rint(colrow).astype(int)):
+        r0, r1 = r - half - search_px, r + half + search_px + 1
+        c0, c1 = c - half - search_px, c + half + search_px + 1
+        if r0 < 0 or c0 < 0 or r1 > h or c1 > w:
+            continue
+        score = cv2.matchTemplate(img[r0:r1, c0:c1], tpl, cv2.TM_CCOEFF_NORMED)
+        dr, dc = np.unravel_index(int(np.argmax(score)), score.shape)
+        out[k] = (c - search_px + dc, r - search_px + dr)
+    return out
+
+
 @dataclass(frozen=True)
 class RingFit:
     """Sub-pixel fits of the double ring, one row per candidate.
@@ -160,25 +196,38 @@ def _compact(mask, *arrays):
 
 
 def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
-    """Batched Levenberg-Marquardt with Huber IRLS weights; ``free`` masks parameters."""
+    """Batched Levenberg-Marquardt with Huber IRLS weights; ``free`` masks parameters.
+
+    A step is kept only where it lowers the weighted cost; elsewhere the
+    damping grows, so no fit runs away.
+    """
     lam = np.full(len(p), 1e-3)
+    eye = np.eye(8)
+    fixed = np.diag(1.0 - free)
+    scale = np.ones(len(p))
     for _ in range(n_iter):
         f, jac = _model(p, u, v, radii)
         r = np.where(mask, y - f, 0.0)
         absr = np.abs(r)
-        scale = np.maximum(_masked_median(absr, mask) * 1.4826, 1e-9)[:, None]
-        wts = np.where(mask, np.minimum(1.0, huber_k * scale / np.maximum(absr, 1e-12)), 0.0)
+        scale = np.maximum(_masked_median(absr, mask) * 1.4826, 1e-9)
+        wts = np.where(mask, np.minimum(1.0, huber_k * scale[:, None] / np.maximum(absr, 1e-12)), 0.0)
+        cost = (wts * r * r).sum(axis=1)
         jac = jac * free
-        jw = jac * wts[..., None]
-        jwt = jw.transpose(0, 2, 1)
+        jwt = (jac * wts[..., None]).transpose(0, 2, 1)
         jtj = jwt @ jac
         jtr = (jwt @ r[..., None])[..., 0]
         diag = np.einsum("kii->ki", jtj)
-        jtj = jtj + (lam[:, None] * (diag + 1e-12))[:, :, None] * np.eye(8) + np.diag(1.0 - free)
-        step = np.linalg.solve(jtj, jtr[..., None])[..., 0]
-        p = p + step
-        p[:, 5] = np.clip(p[:, 5], 0.02, 0.4)
-    return p, scale[:, 0]
+        a = jtj + (lam[:, None] * (diag + 1e-12))[:, :, None] * eye + fixed
+        step = np.linalg.solve(a, jtr[..., None])[..., 0]
+        trial = p + step
+        trial[:, 5] = np.clip(trial[:, 5], 0.02, 0.4)
+        f_new, _ = _model(trial, u, v, radii)
+        r_new = np.where(mask, y - f_new, 0.0)
+        better = (wts * r_new * r_new).sum(axis=1) < cost
+        better &= np.all(np.isfinite(trial), axis=1) & (np.abs(trial[:, 4]) < 0.25)
+        p = np.where(better[:, None], trial, p)
+        lam = np.where(better, lam / 3, lam * 4)
+    return p, scale
 
 
 def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) -> RingFit:

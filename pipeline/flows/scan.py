@@ -124,6 +124,7 @@ def _detect(raster, spec, opt, say):
                                   2 * spec.n_fiducials + 20)
     if len(coarse) == 0:
         raise MarkcalError("no circles found on the plate")
+    coarse = detect.match_centres(edges.filtered, coarse, [r / opt.pixel_mm for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
     fit = detect.refine_rings(raster, raster.to_mm(coarse), spec.ring_radii_mm)
     return edges, fit

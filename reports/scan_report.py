@@ -1,0 +1,593 @@
+"""Self-contained HTML report of one scan flow result (paper 004 Figs. 4, 7-9, Table 1).
+
+Everything is inline: CSS in a ``<style>`` block, figures as base64 PNG. The
+module draws with matplotlib's Agg canvas (no pyplot state, nothing to close)
+and renders the point cloud with pyvista off-screen when OpenGL is there.
+It neither prints nor writes files; the caller stores the returned string.
+"""
+from __future__ import annotations
+
+import base64
+import contextlib
+import html
+import io
+from typing import TYPE_CHECKING
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.colors import LogNorm
+from matplotlib.figure import Figure
+from matplotlib.image import imsave
+from matplotlib.patches import Circle, Rectangle
+
+from markcal.stages.plate import nominal_grid
+
+if TYPE_CHECKING:  # pragma: no cover
+    from markcal.pipeline.flows.scan import ScanResult
+
+__all__ = ["render_scan_report_html"]
+
+DPI = 100
+#: data files the caller writes beside the report, with what they hold
+DATA_FILES = (
+    ("fiducials.csv", "one row per detected fiducial: nominal, measured and scanner-frame centres, fit quality"),
+    ("deviations.csv", "deviation δ = nominal − measured per fiducial (mm)"),
+    ("correction_grid.csv", "regular grid of command offsets (mm) for the machine controller"),
+    ("corrected_targets.csv", "corrected commands and galvo angles for the nominal targets"),
+    ("model.json", "the RBF correction network (centres, weights, bias, spread; mm)"),
+    ("summary.json", "the summary values of the table above"),
+)
+AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
+
+CSS = """
+body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:24px auto;max-width:1100px;
+ color:#222;line-height:1.45;padding:0 16px}
+h1{font-size:1.55em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:3px;
+ margin-top:1.8em}
+.src{color:#555;font-family:monospace;font-size:.9em;word-break:break-all}
+.verdict{font-size:1.05em;background:#eef4fb;border-left:4px solid #3b7dd8;padding:8px 12px;margin:10px 0}
+.note{background:#fdecea;border-left:4px solid #d9342b;padding:8px 12px;margin:10px 0;font-weight:600}
+.warn{background:#fff6e0;border-left:4px solid #e0a100;padding:8px 12px;margin:10px 0}
+table{border-collapse:collapse;margin:8px 0 12px 0;font-size:.93em}
+th,td{border:1px solid #ccc;padding:3px 9px;text-align:right}
+th{background:#f2f2f2}td.l,th.l{text-align:left}
+figure{margin:10px 0 16px 0}figure img{max-width:100%;height:auto;border:1px solid #ddd}
+figcaption{font-size:.9em;color:#444;margin-top:4px;max-width:900px}
+footer{margin-top:2.5em;border-top:1px solid #ccc;padding-top:8px;font-size:.9em;color:#444}
+code{background:#f4f4f4;padding:0 3px}
+"""
+
+
+# ----------------------------------------------------------------------------- helpers
+
+def _e(x) -> str:
+    return html.escape(str(x))
+
+
+def _num(v, unit: str = "mm") -> str:
+    """A length (or other value) with sensible digits; '–' for missing or NaN."""
+    if v is None:
+        return "–"
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return _e(v)
+    if not np.isfinite(v):
+        return "–"
+    if v == int(v) and abs(v) < 1e9 and not unit:
+        s = f"{int(v):,}"
+    elif v == 0:
+        s = "0"
+    elif abs(v) >= 100:
+        s = f"{v:.1f}"
+    elif abs(v) >= 10:
+        s = f"{v:.2f}"
+    elif abs(v) >= 0.1:
+        s = f"{v:.3f}"
+    else:
+        s = f"{v:.3g}"
+    return f"{s} {unit}" if unit else s
+
+
+def _fig(w: float, h: float) -> Figure:
+    fig = Figure(figsize=(w, h), dpi=DPI)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _png_b64(fig: Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
+    fig.clear()
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _img(b64: str, alt: str, caption: str) -> str:
+    return (f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(alt)}">'
+            f"<figcaption>{caption}</figcaption></figure>")
+
+
+def _nice(x: float) -> float:
+    """Largest of 1, 2, 5 x 10^k not above ``x`` (x > 0)."""
+    k = np.floor(np.log10(x))
+    for m in (5.0, 2.0, 1.0):
+        if m * 10 ** k <= x:
+            return float(m * 10 ** k)
+    return float(10 ** k)
+
+
+def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
+    """Magnification making the longest arrow about 0.8 of a pitch."""
+    if not np.isfinite(max_len_mm) or max_len_mm <= 0:
+        return 1.0
+    return _nice(0.8 * pitch_mm / max_len_mm)
+
+
+def _rowcol(fid_id: int, cols: int) -> tuple:
+    return divmod(int(fid_id), int(cols))
+
+
+def _table(header, rows, left_cols=1) -> str:
+    h = "".join(f'<th class="{"l" if i < left_cols else ""}">{c}</th>' for i, c in enumerate(header))
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left_cols else ""}">{c}</td>'
+                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+# ----------------------------------------------------------------------------- sections
+
+def _verdict(s: dict, kind: str) -> str:
+    n_exp, n_det = s.get("n_expected"), s.get("n_detected")
+    parts = [f"{n_det} of {n_exp} fiducials detected"]
+    if s.get("n_missing"):
+        parts[0] += f" ({s['n_missing']} missing)"
+    if kind == "validation":
+        parts.append(f"residual after calibration: RMS {_num(s.get('rms_mm'))}, max {_num(s.get('max_mm'))}")
+    else:
+        parts.append(f"measured deviation: RMS {_num(s.get('rms_mm'))}, max {_num(s.get('max_mm'))}")
+        parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {_num(s.get('cv_rmse_mm'))}, "
+                     f"predicted residual RMS {_num(s.get('predicted_residual_rms_mm'))}")
+    return " · ".join(_e(p) for p in parts)
+
+
+def _summary_section(result) -> str:
+    s = result.summary
+    cols = result.spec.cols
+    cv = _num(s.get("cv_rmse_mm"))
+    if s.get("cv_rmse_std_mm") is not None:
+        cv += f" ± {_num(s.get('cv_rmse_std_mm'))}"
+    rows = [
+        ("fiducials expected", _num(s.get("n_expected"), ""), f"{result.spec.rows} × {cols} grid, "
+         f"pitch {_num(result.spec.pitch_mm)}"),
+        ("fiducials detected", _num(s.get("n_detected"), ""), ""),
+        ("missing ids", _e(", ".join(str(i) for i in s.get("missing_ids", [])) or "none"), "id = row · cols + col"),
+        ("deviation RMS |δ|", _num(s.get("rms_mm")), "full field"),
+        ("deviation max |δ|", _num(s.get("max_mm")), "full field"),
+        ("deviation RMS x", _num(s.get("rms_x_mm")), ""),
+        ("deviation RMS y", _num(s.get("rms_y_mm")), ""),
+        ("CV RMSE of the correction model", cv, f"{result.options.folds}-fold, mean ± std over folds"),
+        ("neurons", _num(s.get("n_neurons"), ""), "Gaussian RBF centres"),
+        ("spread σ", _num(s.get("spread_mm")), "chosen by cross-validation"),
+        ("MSE goal", f"{float(s.get('mse_goal_mm2', np.nan)):.1e} mm²", "chosen by cross-validation"),
+        ("plate tilt", _num(s.get("plate_tilt_deg"), "°"), "plate normal vs scanner z"),
+        ("in-plane rotation", _num(s.get("in_plane_rotation_deg"), "°"), "scanner frame → galvo frame"),
+        ("plane fit RMS", _num(s.get("plane_rms_mm")), f"inlier fraction {_num(s.get('plane_inlier_fraction'), '')}"),
+        ("points in cloud", _num(s.get("n_points"), ""), ""),
+        ("runtime", _num(s.get("runtime_s"), "s"), "whole scan flow"),
+        ("RBF training", _num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
+    ]
+    out = ["<h2>Summary</h2>", _table(["quantity", "value", "note"], rows, left_cols=1)]
+    if result.missing_ids:
+        items = []
+        for i in result.missing_ids:
+            r, c = _rowcol(i, cols)
+            items.append(f"id {i} (row {r}, col {c})")
+        out.append(f'<div class="note">not detected: {_e("; ".join(items))}</div>')
+    return "\n".join(out)
+
+
+def _quiver_figure(result) -> str:
+    f = result.fiducials
+    spec = result.spec
+    x, y = np.asarray(f["x_nom_mm"], float), np.asarray(f["y_nom_mm"], float)
+    dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
+    mag = np.hypot(dx, dy)
+    mmax = float(mag.max()) if len(mag) else 0.0
+    k = _arrow_scale(mmax, spec.pitch_mm)
+    fig = _fig(7.6, 6.6)
+    ax = fig.add_subplot(111)
+    ax.scatter(x, y, s=36, facecolors="none", edgecolors="0.6", linewidths=0.8, zorder=1)
+    q = ax.quiver(x, y, dx, dy, mag, angles="xy", scale_units="xy", scale=1.0 / k, cmap="viridis",
+                  width=0.004, zorder=3, clim=(0, mmax if mmax > 0 else 1))
+    cb = fig.colorbar(q, ax=ax, shrink=0.85, pad=0.02)
+    cb.set_label("|δ| (mm)")
+    key = _nice(0.6 * mmax) if mmax > 0 else 0.1
+    ax.quiverkey(q, 0.82, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
+    if result.missing_ids:
+        _, _, q_all = nominal_grid(spec)
+        miss = q_all[np.asarray(result.missing_ids, int)]
+        ax.scatter(miss[:, 0], miss[:, 1], marker="x", s=70, c="red", linewidths=2, zorder=4,
+                   label="not detected")
+        ax.legend(loc="upper left", bbox_to_anchor=(0.0, 1.07), fontsize=8, frameon=False)
+    hx, hy = spec.half_extent_mm
+    m = 0.9 * spec.pitch_mm
+    ax.set_xlim(-hx - m, hx + m)
+    ax.set_ylim(-hy - m, hy + m)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x nominal (mm)")
+    ax.set_ylabel("y nominal (mm)")
+    ax.grid(alpha=0.25)
+    cap = (f"Deviation vectors δ = nominal − measured at the nominal fiducial positions (grey circles), "
+           f"coloured by |δ|. <b>Arrows magnified {k:g}×</b> (an arrow of length L mm on the plot is a "
+           f"deviation of L/{k:g} mm; key arrow {key:g} mm). Red crosses: fiducials not detected. "
+           f"(Paper Fig. 7.)")
+    return _img(_png_b64(fig), "deviation quiver plot", cap)
+
+
+def _bins(v: np.ndarray) -> int:
+    return int(np.clip(np.sqrt(max(len(v), 1)) * 1.5, 8, 40))
+
+
+def _histogram_figures(result) -> str:
+    f = result.fiducials
+    dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
+    mag = np.hypot(dx, dy)
+    fig = _fig(11.0, 3.2)
+    for i, (v, lab, col) in enumerate(((dx, "δx (mm)", "#3b7dd8"), (dy, "δy (mm)", "#e07b39"),
+                                       (mag, "|δ| (mm)", "#4c9a4c"))):
+        ax = fig.add_subplot(1, 3, i + 1)
+        if len(v):
+            ax.hist(v, bins=_bins(v), color=col, edgecolor="white", linewidth=0.5)
+            ax.axvline(float(np.mean(v)), color="k", lw=1, ls="--")
+        ax.set_xlabel(lab)
+        ax.set_ylabel("fiducials")
+        ax.grid(alpha=0.25)
+    fig.tight_layout()
+    out = [_img(_png_b64(fig), "deviation histograms",
+                "Histograms of the deviation components δx, δy and of |δ| (mm); dashed line: mean. "
+                "(Paper Fig. 8.)")]
+
+    fig = _fig(6.0, 3.6)
+    ax = fig.add_subplot(111)
+    if len(mag):
+        srt = np.sort(mag)
+        frac = np.arange(1, len(srt) + 1) / len(srt) * 100
+        ax.hist(mag, bins=max(_bins(mag), 20), cumulative=True, density=True, histtype="stepfilled",
+                color="#4c9a4c", alpha=0.35, weights=None)
+        ax.step(srt, frac / 100, where="post", color="#2a6b2a", lw=1.2)
+        p80 = float(np.percentile(mag, 80))
+        ax.axhline(0.8, color="red", lw=1, ls="--")
+        ax.axvline(p80, color="red", lw=1, ls=":")
+        ax.annotate(f"80 % of fiducials ≤ {p80:.3g} mm", (p80, 0.8), xytext=(-6, 6), ha="right",
+                    textcoords="offset points", color="red", fontsize=9)
+        out_p80 = p80
+    else:
+        out_p80 = float("nan")
+    ax.set_ylim(0, 1.02)
+    ax.set_xlabel("|δ| (mm)")
+    ax.set_ylabel("cumulative fraction of fiducials")
+    ax.grid(alpha=0.25)
+    out.append(_img(_png_b64(fig), "cumulative histogram",
+                    f"Cumulative histogram of |δ|; dashed red line: the 80 % level, reached at "
+                    f"{_e(_num(out_p80))}. (Paper Fig. 9.)"))
+    return "\n".join(out)
+
+
+def _stats_table(stats: dict) -> str:
+    keys = ("max_x_mm", "max_y_mm", "max_mm", "rms_x_mm", "rms_y_mm", "rms_mm")
+    rows = []
+    for name, st in stats.items():
+        st = st or {}
+        vals = ["–"] * 6 if not st.get("n") else [_num(st.get(k), "") for k in keys]
+        rows.append([_e(AREA_LABELS.get(name, name)), _num(st.get("n", 0), "")] + vals)
+    head = ("<tr><th class='l' rowspan='2'>area</th><th rowspan='2'>n</th>"
+            "<th colspan='3'>max (mm)</th><th colspan='3'>RMS (mm)</th></tr>"
+            "<tr><th>u<sub>x</sub></th><th>u<sub>y</sub></th><th>|δ|</th>"
+            "<th>u<sub>x</sub></th><th>u<sub>y</sub></th><th>|δ|</th></tr>")
+    body = "".join("<tr>" + "".join(f'<td class="{"l" if i == 0 else ""}">{c}</td>' for i, c in enumerate(r))
+                   + "</tr>" for r in rows)
+    return ("<h2>Deviation by area (paper Table 1)</h2>"
+            f"<table>{head}{body}</table>"
+            "<p>Areas are centred squares in the galvo frame selected by the nominal positions; "
+            "u<sub>x</sub>, u<sub>y</sub> are the components of δ.</p>")
+
+
+def _cv_figure(sel) -> str:
+    table = np.asarray(sel.table, float)
+    spreads = np.asarray(sel.spreads_mm, float)
+    goals = np.asarray(sel.goals_mm2, float)
+    fig = _fig(7.4, 0.45 * len(spreads) + 1.6)
+    ax = fig.add_subplot(111)
+    good = table[np.isfinite(table) & (table > 0)]
+    norm = LogNorm(vmin=good.min(), vmax=good.max()) if len(good) and good.max() > good.min() else None
+    im = ax.imshow(table, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
+    cb = fig.colorbar(im, ax=ax, pad=0.02)
+    cb.set_label("mean CV RMSE (mm)")
+    ax.set_xticks(range(len(goals)))
+    ax.set_xticklabels([f"{g:.0e}" for g in goals], rotation=35, ha="right", fontsize=8)
+    ax.set_yticks(range(len(spreads)))
+    ax.set_yticklabels([f"{s:.1f}" for s in spreads], fontsize=8)
+    ax.set_xlabel("MSE goal (mm²)")
+    ax.set_ylabel("spread σ (mm)")
+    if len(good):
+        thr = np.sqrt(good.min() * good.max())
+        for i in range(table.shape[0]):
+            for j in range(table.shape[1]):
+                v = table[i, j]
+                if np.isfinite(v):
+                    ax.text(j, i, f"{v * 1000:.1f}", ha="center", va="center", fontsize=7,
+                            color="white" if v > thr else "black")
+    bi = int(np.argmin(np.abs(spreads - sel.spread_mm)))
+    bj = int(np.argmin(np.abs(np.log(goals) - np.log(sel.mse_goal_mm2))))
+    ax.add_patch(Rectangle((bj - 0.5, bi - 0.5), 1, 1, fill=False, edgecolor="red", lw=2.2))
+    return _img(_png_b64(fig), "cross-validation grid",
+                f"Mean cross-validated RMSE over the (spread, MSE goal) grid; numbers in µm. "
+                f"Red box: the chosen cell (σ = {_num(sel.spread_mm)}, goal {sel.mse_goal_mm2:.0e} mm², "
+                f"CV RMSE {_num(sel.cv_rmse_mm)} ± {_num(sel.cv_rmse_std_mm)}).")
+
+
+def _field_figure(result) -> str:
+    xy = np.asarray(result.grid_xy_mm, float)
+    d = np.asarray(result.grid_dxy_mm, float)
+    mag = np.hypot(d[:, 0], d[:, 1])
+    fig = _fig(6.6, 5.6)
+    ax = fig.add_subplot(111)
+    xs, ys = np.unique(np.round(xy[:, 0], 9)), np.unique(np.round(xy[:, 1], 9))
+    if len(xs) * len(ys) == len(xy) and len(xs) > 1 and len(ys) > 1:
+        ix = np.searchsorted(xs, np.round(xy[:, 0], 9))
+        iy = np.searchsorted(ys, np.round(xy[:, 1], 9))
+        gm = np.full((len(ys), len(xs)), np.nan)
+        gm[iy, ix] = mag
+        hx, hy = (xs[1] - xs[0]) / 2, (ys[1] - ys[0]) / 2
+        im = ax.imshow(gm, origin="lower", extent=(xs[0] - hx, xs[-1] + hx, ys[0] - hy, ys[-1] + hy),
+                       cmap="magma", interpolation="nearest")
+        # about 25 arrows a side, symmetric about the grid centre
+        sx, sy = int(np.ceil(len(xs) / 25)), int(np.ceil(len(ys) / 25))
+        kx = np.arange((len(xs) - 1) % sx // 2, len(xs), sx)
+        ky = np.arange((len(ys) - 1) % sy // 2, len(ys), sy)
+        pick_x, pick_y = np.isin(ix, kx), np.isin(iy, ky)
+        pick = np.flatnonzero(pick_x & pick_y)
+        step = min(sx * (xs[1] - xs[0]), sy * (ys[1] - ys[0]))
+    else:
+        im = ax.scatter(xy[:, 0], xy[:, 1], c=mag, s=4, cmap="magma")
+        pick = np.linspace(0, len(xy) - 1, min(len(xy), 625)).astype(int)
+        step = (float(np.ptp(xy[:, 0])) if len(xy) else 25.0) / 25
+    cb = fig.colorbar(im, ax=ax, pad=0.02, shrink=0.9)
+    cb.set_label("|command offset| (mm)")
+    mmax = float(np.nanmax(mag)) if len(mag) else 0.0
+    k = _nice(0.9 * step / mmax) if mmax > 0 else 1.0
+    q = ax.quiver(xy[pick, 0], xy[pick, 1], d[pick, 0], d[pick, 1], angles="xy", scale_units="xy",
+                  scale=1.0 / k, color="white", edgecolor="black", linewidth=0.3, width=0.004)
+    key = _nice(0.6 * mmax) if mmax > 0 else 0.1
+    ax.quiverkey(q, 0.80, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
+    ax.set_title("command offset K − Q (mm)", fontsize=10, loc="left", pad=10)
+    ax.set_aspect("equal")
+    ax.set_xlabel("wanted x (mm)")
+    ax.set_ylabel("wanted y (mm)")
+    return _img(_png_b64(fig), "correction field",
+                f"Correction field of the RBF model: command offset K − Q over the correction grid "
+                f"({len(xy):,} nodes, colour = magnitude in mm); arrows show the offset at {len(pick)} "
+                f"subsampled nodes, <b>magnified {k:g}×</b> (key arrow {key:g} mm).")
+
+
+def _cv_edge_note(sel) -> str:
+    """A warning when the chosen spread or goal sits at the edge of the searched grid."""
+    spreads = np.asarray(sel.spreads_mm, float)
+    goals = np.asarray(sel.goals_mm2, float)
+    notes = []
+    if len(spreads) > 1 and np.isclose(sel.spread_mm, spreads.max()):
+        notes.append(f"the largest spread tried ({spreads.max():.4g} mm)")
+    elif len(spreads) > 1 and np.isclose(sel.spread_mm, spreads.min()):
+        notes.append(f"the smallest spread tried ({spreads.min():.4g} mm)")
+    if len(goals) > 1 and np.isclose(sel.mse_goal_mm2, goals.min()):
+        notes.append(f"the smallest MSE goal tried ({goals.min():.0e} mm²)")
+    elif len(goals) > 1 and np.isclose(sel.mse_goal_mm2, goals.max()):
+        notes.append(f"the largest MSE goal tried ({goals.max():.0e} mm²)")
+    if not notes:
+        return ""
+    return ("The cross-validation chose " + " and ".join(notes)
+            + ": the best setting may lie outside the searched grid.")
+
+
+def _model_section(result) -> str:
+    sel = result.selection
+    out = ["<h2>Correction model</h2>",
+           f"<p>Gaussian RBF network with <b>{int(result.model.n_neurons)} neurons</b>, spread σ = "
+           f"{_e(_num(sel.spread_mm))}, MSE goal {sel.mse_goal_mm2:.0e} mm², trained by orthogonal least "
+           f"squares on the measured positions P → Q − P.</p>",
+           _cv_figure(sel)]
+    edge = _cv_edge_note(sel)
+    if edge:
+        out.append(f'<div class="warn">{_e(edge)}</div>')
+    out.append(_field_figure(result))
+    pr = result.predicted or {}
+    rows = []
+    for key, lab in (("inverse", "markcal: fitted inverse map (wanted Q → command K)"),
+                     ("eq9", "paper eq. 9: K = Q + δ̂(Q)")):
+        st = pr.get(key) or {}
+        rows.append([_e(lab), _num(st.get("rms_mm"), "") if st.get("n") else "–",
+                     _num(st.get("max_mm"), "") if st.get("n") else "–"])
+    out.append("<h3>Predicted residual after correction</h3>")
+    out.append(_table(["method", "RMS |δ| (mm)", "max |δ| (mm)"], rows))
+    out.append("<p>Both values are estimates: the landing position of each corrected command is "
+               "predicted with the fitted forward model (nominal → landing error) on the correction grid "
+               "inside the fiducial field. Eq. 9 (K = Q + δ̂(Q)) is only first order, because the machine "
+               "errs at the command K, not at the wanted position Q; markcal instead fits the map from "
+               "wanted position to command directly (trained on measured P → Q − P), so no error is "
+               "evaluated at the wrong place.</p>")
+    return "\n".join(out)
+
+
+def _render_3d(result) -> str:
+    try:
+        import pyvista as pv
+
+        xyz = np.asarray(result.preview_xyz_mm, np.float32)
+        inten = np.asarray(result.preview_intensity, np.float32)
+        if len(xyz) == 0:
+            raise ValueError("no preview points")
+        quiet = pv.vtk_verbosity("error") if hasattr(pv, "vtk_verbosity") else contextlib.nullcontext()
+        with quiet:
+            img = _screenshot(pv, result, xyz, inten)
+        buf = io.BytesIO()
+        imsave(buf, np.asarray(img), format="png")
+        b64 = base64.b64encode(buf.getvalue()).decode("ascii")
+        return _img(b64, "point cloud",
+                    f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
+                    f"grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
+                    f"(60 mm long); tilt {_e(_num(result.summary.get('plate_tilt_deg'), '°'))}.")
+    except Exception as exc:  # noqa: BLE001 - any render failure becomes a note
+        reason = f"{type(exc).__name__}: {exc}".strip()
+        return f'<div class="warn">3D render unavailable: {_e(reason[:300])}</div>'
+
+
+def _screenshot(pv, result, xyz, inten) -> np.ndarray:
+    """Off-screen pyvista render of the cloud and the plate normal; (h, w, 3) uint8."""
+    plotter = pv.Plotter(off_screen=True, window_size=(900, 650))
+    try:
+        plotter.set_background("white")
+        cloud = pv.PolyData(xyz)
+        cloud["intensity"] = inten
+        lo, hi = np.percentile(inten, [1, 99])
+        plotter.add_mesh(cloud, scalars="intensity", cmap="gray", clim=(float(lo), float(max(hi, lo + 1e-6))),
+                         point_size=2, render_points_as_spheres=False, show_scalar_bar=True,
+                         scalar_bar_args={"title": "intensity", "color": "black"})
+        n = np.asarray(result.plane.normal, float)
+        o = np.asarray(result.plane.origin_mm, float)
+        arrow = pv.Arrow(start=o, direction=n, scale=60.0, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02)
+        plotter.add_mesh(arrow, color="red")
+        plotter.show_axes()
+        plotter.view_isometric()
+        plotter.camera.zoom(1.2)
+        return plotter.screenshot(return_img=True)
+    finally:
+        plotter.close()
+
+
+def _fiducial_uv(result, i: int) -> np.ndarray:
+    f = result.fiducials
+    p = np.array([f["x_scanner_mm"][i], f["y_scanner_mm"][i], f["z_scanner_mm"][i]], float)
+    r = p - np.asarray(result.plane.origin_mm, float)
+    return np.array([r @ np.asarray(result.plane.e_u, float), r @ np.asarray(result.plane.e_v, float)])
+
+
+def _crop(img, raster, uv, half_mm):
+    """Slice of ``img`` around ``uv`` and its imshow extent (mm)."""
+    pix = raster.pixel_mm
+    cr = raster.to_pixel(np.array([[uv[0] - half_mm, uv[1] - half_mm], [uv[0] + half_mm, uv[1] + half_mm]]))
+    c0 = int(np.clip(np.floor(cr[0, 0] + 0.5), 0, img.shape[1]))
+    c1 = int(np.clip(np.ceil(cr[1, 0] + 0.5), 0, img.shape[1]))
+    r0 = int(np.clip(np.floor(cr[0, 1] + 0.5), 0, img.shape[0]))
+    r1 = int(np.clip(np.ceil(cr[1, 1] + 0.5), 0, img.shape[0]))
+    ext = (raster.u0_mm + c0 * pix, raster.u0_mm + c1 * pix, raster.v0_mm + r0 * pix, raster.v0_mm + r1 * pix)
+    return img[r0:r1, c0:c1], ext, (r0, r1, c0, c1)
+
+
+def _fiducial_crops(result) -> str:
+    f = result.fiducials
+    n = len(f["id"])
+    if n == 0:
+        return "<p>No fiducials detected.</p>"
+    centre = int(np.argmin(np.hypot(f["x_nom_mm"], f["y_nom_mm"])))
+    worst = int(np.argmax(f["fit_rms"]))
+    picks = [(centre, "nearest the field centre")]
+    if worst != centre:
+        picks.append((worst, "worst ring fit (largest fit RMS)"))
+    raster, edges = result.raster, result.edges
+    radii = tuple(result.spec.ring_radii_mm)
+    half = max(4.0, 1.2 * max(radii))
+    fig = _fig(13.0, 3.5 * len(picks))
+    for k, (i, why) in enumerate(picks):
+        uv = _fiducial_uv(result, i)
+        scale = float(f["ring_radius_scale"][i])
+        r, c = int(f["row"][i]), int(f["col"][i])
+        inten, ext, (r0, r1, c0, c1) = _crop(np.asarray(raster.intensity, float), raster, uv, half)
+        valid = np.asarray(raster.valid)[r0:r1, c0:c1]
+        panels = [(np.ma.masked_array(inten, ~valid), "intensity (raster)"),
+                  (np.asarray(edges.filtered)[r0:r1, c0:c1], "median filtered"),
+                  (np.asarray(edges.edges)[r0:r1, c0:c1], "Canny edges"),
+                  (np.asarray(edges.filled)[r0:r1, c0:c1], "closed + filled")]
+        for j, (im, name) in enumerate(panels):
+            ax = fig.add_subplot(len(picks), len(panels), len(panels) * k + j + 1)
+            if im.size == 0:
+                ax.text(0.5, 0.5, "outside the raster", ha="center", va="center", transform=ax.transAxes)
+                continue
+            grey = j < 2
+            if grey:
+                vals = im.compressed() if np.ma.isMaskedArray(im) else im.ravel()
+                lo, hi = (np.percentile(vals, [1, 99]) if vals.size else (0, 1))
+                ax.imshow(im, cmap="gray", origin="lower", extent=ext, vmin=lo, vmax=hi, interpolation="nearest")
+            else:
+                ax.imshow(im.astype(float), cmap="gray", origin="lower", extent=ext, vmin=0, vmax=1,
+                          interpolation="nearest")
+            for rr in radii:
+                ax.add_patch(Circle((uv[0], uv[1]), rr * scale, fill=False, edgecolor="#ff3b30",
+                                    lw=0.9, ls=(0, (4, 3)) if grey else "-", alpha=0.85))
+            ax.plot(uv[0], uv[1], "+", color="#00c8ff", ms=10, mew=1.5)
+            ax.set_xlim(uv[0] - half, uv[0] + half)
+            ax.set_ylim(uv[1] - half, uv[1] + half)
+            ax.set_aspect("equal")
+            ax.set_xlabel("u (mm)", fontsize=8)
+            ax.set_ylabel("v (mm)", fontsize=8)
+            ax.tick_params(labelsize=7)
+            if j == 0:
+                ax.set_title(f"id {int(f['id'][i])} (row {r}, col {c}): {why}\n"
+                             f"fit RMS {float(f['fit_rms'][i]):.3g}, radius scale {scale:.4f}", fontsize=8.5,
+                             loc="left")
+            else:
+                ax.set_title(name, fontsize=9)
+    fig.tight_layout()
+    radii_txt = ", ".join(f"{x:g}" for x in radii)
+    return _img(_png_b64(fig), "fiducial crops",
+                f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(picks)} detected "
+                f"fiducial(s) with the fitted rings (red, dashed on the grey images; spec radii {radii_txt} mm "
+                f"× fitted radius scale) and the fitted centre (blue cross). Left to right: raster intensity, "
+                f"median filtered, Canny edges, closed and hole-filled edges as fed to the Hough transform "
+                f"(paper Fig. 4). Fit RMS is the robust residual scale in intensity units.")
+
+
+def _footer() -> str:
+    items = "".join(f"<li><code>{_e(n)}</code> — {_e(d)}</li>" for n, d in DATA_FILES)
+    return f"<footer><b>Data files written beside this report</b><ul>{items}</ul></footer>"
+
+
+# ----------------------------------------------------------------------------- entry point
+
+def render_scan_report_html(result: "ScanResult") -> str:
+    """Render a scan flow result as one self-contained HTML page.
+
+    Parameters
+    ----------
+    result : ScanResult
+        What ``markcal.pipeline.flows.scan.run_scan`` returned.
+
+    Returns
+    -------
+    str
+        The HTML document: inline CSS, figures as base64 PNG, no scripts and
+        no external URLs.
+    """
+    s = result.summary
+    kind = s.get("kind", "calibration")
+    title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
+             else "markcal scan report — calibration plate")
+    parts = [
+        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
+        f"<h1>{_e(title)}</h1>",
+        f'<div class="src">source: {_e(s.get("source", result.source))}</div>',
+        f'<div class="verdict">{_verdict(s, kind)}</div>',
+        _summary_section(result),
+        "<h2>Deviations</h2>",
+        _quiver_figure(result),
+        _histogram_figures(result),
+        _stats_table(result.stats),
+        _model_section(result),
+        "<h2>Point cloud</h2>",
+        _render_3d(result),
+        "<h2>Detected fiducials</h2>",
+        _fiducial_crops(result),
+        _footer(),
+        "</body></html>",
+    ]
+    return "\n".join(parts)
