@@ -31,7 +31,7 @@ DPI = 100
 #: data files the caller writes beside the report, with what they hold
 DATA_FILES = (
     ("fiducials.csv", "one row per detected fiducial: nominal, measured and scanner-frame centres, fit quality"),
-    ("deviations.csv", "deviation δ = nominal − measured per fiducial (mm)"),
+    ("deviations.csv", "per-fiducial deviations δ = nominal − measured (mm)"),
     ("correction_grid.csv", "regular grid of command offsets (mm) for the machine controller"),
     ("corrected_targets.csv", "corrected commands and galvo angles for the nominal targets"),
     ("model.json", "the RBF correction network (centres, weights, bias, spread; mm)"),
@@ -489,7 +489,8 @@ def _fiducial_crops(result) -> str:
     if n == 0:
         return "<p>No fiducials detected.</p>"
     centre = int(np.argmin(np.hypot(f["x_nom_mm"], f["y_nom_mm"])))
-    worst = int(np.argmax(f["fit_rms"]))
+    rms = np.asarray(f["fit_rms"], float)
+    worst = int(np.nanargmax(rms)) if np.isfinite(rms).any() else centre
     picks = [(centre, "nearest the field centre")]
     if worst != centre:
         picks.append((worst, "worst ring fit (largest fit RMS)"))
