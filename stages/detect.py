@@ -27,10 +27,25 @@ class EdgeImages:
 
 
 def filter_raster(raster: Raster, median_px: int = 5) -> np.ndarray:
-    """Fill empty cells with the plate's median intensity, then median filter."""
-    img = raster.intensity.copy()
-    img[~raster.valid] = np.median(img[raster.valid])
-    return cv2.medianBlur(img.astype(np.float32), median_px)
+    """Fill empty cells from their neighbours, then median filter.
+
+    A scan grid turned against the raster leaves bands of empty cells (moire);
+    each is filled with the mean of the valid cells in its 3 x 3 neighbourhood
+    (normalised convolution; 5 x 5 where that is empty too, else the plate's
+    median), so rings keep their shape through the median filter.
+    """
+    valid = raster.valid.astype(np.float32)
+    img = np.where(raster.valid, raster.intensity, 0).astype(np.float32)
+    out = img.copy()
+    todo = ~raster.valid
+    for k in (3, 5):
+        num = cv2.boxFilter(img, -1, (k, k), normalize=False)
+        den = cv2.boxFilter(valid, -1, (k, k), normalize=False)
+        fill = todo & (den > 0)
+        out[fill] = num[fill] / den[fill]
+        todo &= ~fill
+    out[todo] = np.median(img[raster.valid])
+    return cv2.medianBlur(out, median_px)
 
 
 def edge_images(filtered: np.ndarray, close_px: int = 5, sigma_px: float = 1.0) -> EdgeImages:
