@@ -21,6 +21,7 @@ from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
 from markcal.stages.plate import nominal_grid
+from markcal.stages.deviation import GridCorrection
 
 if TYPE_CHECKING:  # pragma: no cover
     from markcal.pipeline.flows.scan import ScanResult
@@ -332,26 +333,19 @@ def _field_figure(result) -> str:
     mag = np.hypot(d[:, 0], d[:, 1])
     fig = _fig(6.6, 5.6)
     ax = fig.add_subplot(111)
-    xs, ys = np.unique(np.round(xy[:, 0], 9)), np.unique(np.round(xy[:, 1], 9))
-    if len(xs) * len(ys) == len(xy) and len(xs) > 1 and len(ys) > 1:
-        ix = np.searchsorted(xs, np.round(xy[:, 0], 9))
-        iy = np.searchsorted(ys, np.round(xy[:, 1], 9))
-        gm = np.full((len(ys), len(xs)), np.nan)
-        gm[iy, ix] = mag
-        hx, hy = (xs[1] - xs[0]) / 2, (ys[1] - ys[0]) / 2
-        im = ax.imshow(gm, origin="lower", extent=(xs[0] - hx, xs[-1] + hx, ys[0] - hy, ys[-1] + hy),
-                       cmap="magma", interpolation="nearest")
-        # about 25 arrows a side, symmetric about the grid centre
-        sx, sy = int(np.ceil(len(xs) / 25)), int(np.ceil(len(ys) / 25))
-        kx = np.arange((len(xs) - 1) % sx // 2, len(xs), sx)
-        ky = np.arange((len(ys) - 1) % sy // 2, len(ys), sy)
-        pick_x, pick_y = np.isin(ix, kx), np.isin(iy, ky)
-        pick = np.flatnonzero(pick_x & pick_y)
-        step = min(sx * (xs[1] - xs[0]), sy * (ys[1] - ys[0]))
-    else:
-        im = ax.scatter(xy[:, 0], xy[:, 1], c=mag, s=4, cmap="magma")
-        pick = np.linspace(0, len(xy) - 1, min(len(xy), 625)).astype(int)
-        step = (float(np.ptp(xy[:, 0])) if len(xy) else 25.0) / 25
+    grid = GridCorrection.from_nodes(xy, d)
+    xs, ys = grid.x_mm, grid.y_mm
+    hx, hy = (xs[1] - xs[0]) / 2, (ys[1] - ys[0]) / 2
+    im = ax.imshow(np.hypot(grid.dx_mm, grid.dy_mm), origin="lower",
+                   extent=(xs[0] - hx, xs[-1] + hx, ys[0] - hy, ys[-1] + hy),
+                   cmap="magma", interpolation="nearest")
+    # about 25 arrows a side, symmetric about the grid centre
+    sx, sy = int(np.ceil(len(xs) / 25)), int(np.ceil(len(ys) / 25))
+    ix = np.searchsorted(xs, np.round(xy[:, 0], 9))
+    iy = np.searchsorted(ys, np.round(xy[:, 1], 9))
+    pick = np.flatnonzero(np.isin(ix, np.arange((len(xs) - 1) % sx // 2, len(xs), sx))
+                          & np.isin(iy, np.arange((len(ys) - 1) % sy // 2, len(ys), sy)))
+    step = min(sx * (xs[1] - xs[0]), sy * (ys[1] - ys[0]))
     cb = fig.colorbar(im, ax=ax, pad=0.02, shrink=0.9)
     cb.set_label("|command offset| (mm)")
     mmax = float(np.nanmax(mag)) if len(mag) else 0.0

@@ -170,8 +170,8 @@ def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float):
     return u, v, i, m
 
 
-def _model(p, u, v, radii):
-    """Double-ring intensity model and its Jacobian (k, n, 8)."""
+def _model(p, u, v, radii, jacobian=True):
+    """Double-ring intensity model and (unless ``jacobian`` is False) its Jacobian (k, n, 8)."""
     cu, cv, b, a, m, w, gu, gv = (p[:, j, None] for j in range(8))
     du, dv = u - cu, v - cv
     rho = np.sqrt(du * du + dv * dv) + 1e-12
@@ -187,6 +187,8 @@ def _model(p, u, v, radii):
         dg_dm += e * t / w ** 2 * r
         dg_dw += e * t * t / w ** 3
     f = b + a * g + gu * du + gv * dv
+    if not jacobian:
+        return f, None
     jac = np.stack([
         a * dg_drho * (-du / rho) - gu,
         a * dg_drho * (-dv / rho) - gv,
@@ -236,7 +238,7 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
         step = np.linalg.solve(a, jtr[..., None])[..., 0]
         trial = p + step
         trial[:, 5] = np.clip(trial[:, 5], 0.02, 0.4)
-        f_new, _ = _model(trial, u, v, radii)
+        f_new, _ = _model(trial, u, v, radii, jacobian=False)
         r_new = np.where(mask, y - f_new, 0.0)
         better = (wts * r_new * r_new).sum(axis=1) < cost
         better &= np.all(np.isfinite(trial), axis=1) & (np.abs(trial[:, 4]) < 0.25)

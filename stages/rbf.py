@@ -105,7 +105,8 @@ def ols_select(x_mm, y_mm, spread_mm, max_neurons, mse_goal=0.0, x_val_mm=None):
     y = np.asarray(y_mm, float).reshape(len(x), -1)
     n, k = y.shape
     P = _design(x, x, spread_mm)
-    P -= P.mean(axis=0)                # orthogonal to the bias column
+    col_mean = P.mean(axis=0)
+    P -= col_mean                      # orthogonal to the bias column
     E = y - y.mean(axis=0)
     norms = (P * P).sum(axis=0)
     norms0 = norms.copy()
@@ -115,7 +116,7 @@ def ols_select(x_mm, y_mm, spread_mm, max_neurons, mse_goal=0.0, x_val_mm=None):
     pred = None
     if x_val_mm is not None:
         Pv = _design(np.asarray(x_val_mm, float), x, spread_mm)
-        Pv -= _design(x, x, spread_mm).mean(axis=0)
+        Pv -= col_mean
         pred = [np.broadcast_to(y.mean(axis=0), (len(Pv), k)).copy()]
     for _ in range(min(max_neurons, n)):
         if mse[-1] <= mse_goal:

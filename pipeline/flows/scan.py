@@ -165,7 +165,7 @@ def _run(cloud, source, spec, opt, say, t0):
         raise MarkcalError(f"only {len(ids)} of {n_exp} fiducials could be placed on the grid")
 
     say("rigid registration to the nominal grid")
-    _, _, q_all = nominal_grid(spec)
+    r_all, c_all, q_all = nominal_grid(spec)
     q = q_all[ids]
     tf, used = robust_rigid_fit(uv, q, outlier_mm=0.3 * spec.pitch_mm)
     mirrored = rigid_fit(uv[used], q[used], allow_reflection=True)
@@ -209,7 +209,6 @@ def _run(cloud, source, spec, opt, say, t0):
     dxy = model(nodes)
     k = q_all + model(q_all)
     ax, ay, dfr = galvo.inverse(k[:, 0], k[:, 1], spec.d_mm, spec.e_mm)
-    r_all, c_all, _ = nominal_grid(spec)
     targets = {"id": np.arange(n_exp), "row": r_all, "col": c_all,
                "x_target_mm": q_all[:, 0], "y_target_mm": q_all[:, 1],
                "x_cmd_mm": k[:, 0], "y_cmd_mm": k[:, 1],
