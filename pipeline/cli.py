@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
 import sys
 import time
@@ -11,7 +12,12 @@ import numpy as np
 from markcal.stages.errors import MarkcalError
 
 
-def _progress(quiet: bool):
+#: modules that add their own sub-commands: each has ``register(sub, render_sub)``
+#: taking the top-level and the ``render`` sub-parser collections.
+COMMAND_MODULES: tuple = ()
+
+
+def progress(quiet: bool):
     t0 = time.perf_counter()
 
     def say(msg: str) -> None:
@@ -28,7 +34,7 @@ def cmd_render_scan(args) -> int:
     from markcal.stages.deviation import GridCorrection
     from markcal.stages.plate import PlateSpec
 
-    say = _progress(args.quiet)
+    say = progress(args.quiet)
     spec = PlateSpec(rows=args.rows, cols=args.cols,
                      pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm)
     correction = None
@@ -65,7 +71,7 @@ def cmd_scan(args) -> int:
     from markcal.pipeline.flows.scan import ScanOptions, run_scan
     from markcal.reports.scan_outputs import write_scan_outputs
 
-    say = _progress(args.quiet)
+    say = progress(args.quiet)
     spec = read_plate_spec(args.plate)
     res = run_scan(args.cloud, spec, ScanOptions(seed=args.seed, validation=args.validation), progress=say)
     say("writing tables and report")
@@ -108,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     rs.add_argument("--formats", default="ply,npy", help="comma list of ply, npy")
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_scan)
+
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub, rsub)
     return ap
 
 

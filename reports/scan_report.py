@@ -9,17 +9,15 @@ from __future__ import annotations
 
 import base64
 import contextlib
-import html
 import io
 from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import LogNorm
-from matplotlib.figure import Figure
 from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
+from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
 
@@ -28,7 +26,6 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["render_scan_report_html"]
 
-DPI = 100
 #: data files the caller writes beside the report, with what they hold
 DATA_FILES = (
     ("fiducials.csv", "one row per detected fiducial: nominal, measured and scanner-frame centres, fit quality"),
@@ -40,72 +37,12 @@ DATA_FILES = (
 )
 AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
 
-CSS = """
-body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;margin:24px auto;max-width:1100px;
- color:#222;line-height:1.45;padding:0 16px}
-h1{font-size:1.55em;margin-bottom:.2em}h2{font-size:1.2em;border-bottom:1px solid #ccc;padding-bottom:3px;
- margin-top:1.8em}
-.src{color:#555;font-family:monospace;font-size:.9em;word-break:break-all}
-.verdict{font-size:1.05em;background:#eef4fb;border-left:4px solid #3b7dd8;padding:8px 12px;margin:10px 0}
-.note{background:#fdecea;border-left:4px solid #d9342b;padding:8px 12px;margin:10px 0;font-weight:600}
-.warn{background:#fff6e0;border-left:4px solid #e0a100;padding:8px 12px;margin:10px 0}
-table{border-collapse:collapse;margin:8px 0 12px 0;font-size:.93em}
-th,td{border:1px solid #ccc;padding:3px 9px;text-align:right}
-th{background:#f2f2f2}td.l,th.l{text-align:left}
-figure{margin:10px 0 16px 0}figure img{max-width:100%;height:auto;border:1px solid #ddd}
-figcaption{font-size:.9em;color:#444;margin-top:4px;max-width:900px}
-footer{margin-top:2.5em;border-top:1px solid #ccc;padding-top:8px;font-size:.9em;color:#444}
-code{background:#f4f4f4;padding:0 3px}
-"""
-
-
-# ----------------------------------------------------------------------------- helpers
-
-def _e(x) -> str:
-    return html.escape(str(x))
-
-
-def _num(v, unit: str = "mm") -> str:
-    """A length (or other value) with sensible digits; '–' for missing or NaN."""
-    if v is None:
-        return "–"
-    try:
-        v = float(v)
-    except (TypeError, ValueError):
-        return _e(v)
-    if not np.isfinite(v):
-        return "–"
-    if v == int(v) and abs(v) < 1e9 and not unit:
-        s = f"{int(v):,}"
-    elif v == 0:
-        s = "0"
-    elif abs(v) >= 100:
-        s = f"{v:.1f}"
-    elif abs(v) >= 10:
-        s = f"{v:.2f}"
-    elif abs(v) >= 0.1:
-        s = f"{v:.3f}"
-    else:
-        s = f"{v:.3g}"
-    return f"{s} {unit}" if unit else s
-
-
-def _fig(w: float, h: float) -> Figure:
-    fig = Figure(figsize=(w, h), dpi=DPI)
-    FigureCanvasAgg(fig)
-    return fig
-
-
-def _png_b64(fig: Figure) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    fig.clear()
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def _img(b64: str, alt: str, caption: str) -> str:
-    return (f'<figure><img src="data:image/png;base64,{b64}" alt="{_e(alt)}">'
-            f"<figcaption>{caption}</figcaption></figure>")
+_e = esc
+_num = num
+_fig = new_figure
+_png_b64 = png_b64
+_img = img
+_table = table
 
 
 def _nice(x: float) -> float:
@@ -126,13 +63,6 @@ def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
 
 def _rowcol(fid_id: int, cols: int) -> tuple:
     return divmod(int(fid_id), int(cols))
-
-
-def _table(header, rows, left_cols=1) -> str:
-    h = "".join(f'<th class="{"l" if i < left_cols else ""}">{c}</th>' for i, c in enumerate(header))
-    body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left_cols else ""}">{c}</td>'
-                                    for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
 
 
 # ----------------------------------------------------------------------------- sections
@@ -542,8 +472,7 @@ def _fiducial_crops(result) -> str:
 
 
 def _footer() -> str:
-    items = "".join(f"<li><code>{_e(n)}</code> — {_e(d)}</li>" for n, d in DATA_FILES)
-    return f"<footer><b>Data files written beside this report</b><ul>{items}</ul></footer>"
+    return data_files_footer(DATA_FILES)
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -567,10 +496,6 @@ def render_scan_report_html(result: "ScanResult") -> str:
     title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
              else "markcal scan report — calibration plate")
     parts = [
-        "<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
-        f"<title>{_e(title)}</title><style>{CSS}</style></head><body>",
-        f"<h1>{_e(title)}</h1>",
-        f'<div class="src">source: {_e(s.get("source", result.source))}</div>',
         f'<div class="verdict">{_verdict(s, kind)}</div>',
         _summary_section(result),
         "<h2>Deviations</h2>",
@@ -583,6 +508,5 @@ def render_scan_report_html(result: "ScanResult") -> str:
         "<h2>Detected fiducials</h2>",
         _fiducial_crops(result),
         _footer(),
-        "</body></html>",
     ]
-    return "\n".join(parts)
+    return page(title, parts, source=s.get("source", result.source))
