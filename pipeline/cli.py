@@ -14,7 +14,9 @@ from markcal.stages.errors import MarkcalError
 
 #: modules that add their own sub-commands: each has ``register(sub, render_sub)``
 #: taking the top-level and the ``render`` sub-parser collections.
-COMMAND_MODULES: tuple = ()
+COMMAND_MODULES: tuple = (
+    "markcal.pipeline.cli_selfcal",
+)
 
 
 def progress(quiet: bool):

@@ -63,3 +63,56 @@ def plate_spec_toml(spec: PlateSpec) -> str:
         "[correction]\n"
         f"grid_step_mm = {spec.grid_step_mm!r}\n"
     )
+
+
+def read_selfcal_setup(path):
+    """Read a self-calibration ``setup.toml``: ``n``, ``pitch_mm``, ``k``, ``views``.
+
+    Unknown keys are an error. ``k = 0`` (or no ``k``) means an XY-only session.
+    """
+    from markcal.stages.selfcal import SelfcalSetup
+
+    path = os.fspath(path)
+    try:
+        with open(path, "rb") as fh:
+            d = tomllib.load(fh)
+    except FileNotFoundError:
+        raise MarkcalError("no such setup file", path) from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise MarkcalError(f"not valid TOML: {exc}", path) from None
+    allowed = {"n", "pitch_mm", "k", "views"}
+    for key in d:
+        if key not in allowed:
+            raise MarkcalError(f"unknown key '{key}' (expected {', '.join(sorted(allowed))})", path)
+    for key in ("n", "pitch_mm"):
+        if key not in d:
+            raise MarkcalError(f"missing key '{key}'", path)
+    try:
+        n, k = d["n"], d.get("k", 0)
+        if not isinstance(n, int) or not isinstance(k, int):
+            raise ValueError("n and k must be integers")
+        views = tuple(int(v) for v in d.get("views", [0, 1, 2, 3]))
+        setup = SelfcalSetup(n=n, pitch_mm=float(d["pitch_mm"]), k=k, views=views)
+    except (TypeError, ValueError) as exc:
+        raise MarkcalError(f"bad value: {exc}", path) from None
+    if setup.n < 3 or setup.n % 2 == 0:
+        raise MarkcalError(f"n must be odd and at least 3 (got {setup.n}): the plate origin is the centre mark", path)
+    if setup.pitch_mm <= 0:
+        raise MarkcalError("pitch_mm must be positive", path)
+    if setup.k < 0 or setup.k % 4:
+        raise MarkcalError(f"k must be a multiple of 4 (got {setup.k}): view 1 turns the plate by K/4 lines", path)
+    bad = [v for v in setup.views if v not in (0, 1, 2, 3)]
+    if bad or len(set(setup.views)) != len(setup.views):
+        raise MarkcalError(f"views must be distinct values of 0, 1, 2, 3 (got {list(setup.views)})", path)
+    return setup
+
+
+def selfcal_setup_toml(setup) -> str:
+    """The TOML text of a self-calibration setup (as the renderer writes it)."""
+    return (
+        f"n = {setup.n}              # sites per side (odd); m, n run from -(n-1)/2 to (n-1)/2\n"
+        f"pitch_mm = {setup.pitch_mm!r}     # site interval\n"
+        f"k = {setup.k}              # angular lines (multiple of 4; 0 = XY only)\n"
+        f"views = [{', '.join(str(v) for v in setup.views)}]   # 0 aligned, 1 turned +90 deg, "
+        "2 turned +360/k deg, 3 shifted one pitch along +X\n"
+    )

@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "png_b64", "img", "table", "page", "data_files_footer"]
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer"]
 
 DPI = 100
 
@@ -65,6 +65,15 @@ def num(v, unit: str = "mm") -> str:
     else:
         s = f"{v:.3g}"
     return f"{s} {unit}" if unit else s
+
+
+def nice_number(x: float) -> float:
+    """Largest of 1, 2, 5 x 10^k not above ``x`` (x > 0): a round scale factor."""
+    k = np.floor(np.log10(x))
+    for m in (5.0, 2.0, 1.0):
+        if m * 10 ** k <= x:
+            return float(m * 10 ** k)
+    return float(10 ** k)
 
 
 def new_figure(w_in: float, h_in: float) -> Figure:

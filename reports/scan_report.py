@@ -17,7 +17,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
-from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
 
@@ -45,20 +45,11 @@ _img = img
 _table = table
 
 
-def _nice(x: float) -> float:
-    """Largest of 1, 2, 5 x 10^k not above ``x`` (x > 0)."""
-    k = np.floor(np.log10(x))
-    for m in (5.0, 2.0, 1.0):
-        if m * 10 ** k <= x:
-            return float(m * 10 ** k)
-    return float(10 ** k)
-
-
 def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
     """Magnification making the longest arrow about 0.8 of a pitch."""
     if not np.isfinite(max_len_mm) or max_len_mm <= 0:
         return 1.0
-    return _nice(0.8 * pitch_mm / max_len_mm)
+    return nice_number(0.8 * pitch_mm / max_len_mm)
 
 
 def _rowcol(fid_id: int, cols: int) -> tuple:
@@ -132,7 +123,7 @@ def _quiver_figure(result) -> str:
                   width=0.004, zorder=3, clim=(0, mmax if mmax > 0 else 1))
     cb = fig.colorbar(q, ax=ax, shrink=0.85, pad=0.02)
     cb.set_label("|δ| (mm)")
-    key = _nice(0.6 * mmax) if mmax > 0 else 0.1
+    key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
     ax.quiverkey(q, 0.82, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
     if result.missing_ids:
         _, _, q_all = nominal_grid(spec)
@@ -279,10 +270,10 @@ def _field_figure(result) -> str:
     cb = fig.colorbar(im, ax=ax, pad=0.02, shrink=0.9)
     cb.set_label("|command offset| (mm)")
     mmax = float(np.nanmax(mag)) if len(mag) else 0.0
-    k = _nice(0.9 * step / mmax) if mmax > 0 else 1.0
+    k = nice_number(0.9 * step / mmax) if mmax > 0 else 1.0
     q = ax.quiver(xy[pick, 0], xy[pick, 1], d[pick, 0], d[pick, 1], angles="xy", scale_units="xy",
                   scale=1.0 / k, color="white", edgecolor="black", linewidth=0.3, width=0.004)
-    key = _nice(0.6 * mmax) if mmax > 0 else 0.1
+    key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
     ax.quiverkey(q, 0.80, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
     ax.set_title("command offset K − Q (mm)", fontsize=10, loc="left", pad=10)
     ax.set_aspect("equal")
