@@ -1,0 +1,63 @@
+"""Files of the servo flow: metrics.csv, traces.csv, summary.json (last), report.html."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from markcal.pipeline.flows.servo import METRIC_COLUMNS, ServoResult
+from markcal.reports.files import write_csv, write_json
+
+#: traces.csv columns
+TRACE_COLUMNS = ("case", "controller", "amplitude_mm", "frequency_hz", "t_s", "ref_mm", "pos_mm", "err_um")
+
+
+def metrics_table(result: ServoResult) -> dict:
+    """metrics.csv as columns (see ``METRIC_COLUMNS``)."""
+    return {c: [getattr(r, c) for r in result.runs] for c in METRIC_COLUMNS}
+
+
+def traces_table(result: ServoResult, max_points: int = 1000) -> dict:
+    """traces.csv as columns: each run decimated to at most ``max_points`` samples.
+
+    Moves: the whole record; sinusoids: the evaluated (last) period; traces: all.
+    """
+    cols = {c: [] for c in TRACE_COLUMNS}
+    for r in result.runs:
+        idx = np.arange(len(r.sim.t_s))[r.window]
+        if result.mode == "trace":
+            max_points = max(max_points, 20000)
+        step = max(1, int(np.ceil(len(idx) / max_points)))
+        idx = idx[::step]
+        n = len(idx)
+        cols["case"] += [r.case] * n
+        cols["controller"] += [r.controller] * n
+        cols["amplitude_mm"] += [r.amplitude_mm] * n
+        cols["frequency_hz"] += [r.frequency_hz] * n
+        cols["t_s"] += list(r.sim.t_s[idx])
+        cols["ref_mm"] += list(r.sim.ref_mm[idx])
+        cols["pos_mm"] += list(r.sim.pos_mm[idx])
+        cols["err_um"] += list(r.sim.err_mm[idx] * 1e3)
+    return cols
+
+
+def write_servo_outputs(result: ServoResult, out_dir, report: bool = True) -> dict:
+    """Write all outputs atomically; ``summary.json`` last. Returns name -> path."""
+    os.makedirs(out_dir, exist_ok=True)
+    paths = {}
+    p = os.path.join(out_dir, "metrics.csv")
+    write_csv(p, metrics_table(result))
+    paths["metrics.csv"] = p
+    p = os.path.join(out_dir, "traces.csv")
+    write_csv(p, traces_table(result))
+    paths["traces.csv"] = p
+    if report:
+        from markcal.reports.files import atomic_write_text
+        from markcal.reports.servo_report import servo_report_html
+        p = os.path.join(out_dir, "report.html")
+        atomic_write_text(p, servo_report_html(result))
+        paths["report.html"] = p
+    p = os.path.join(out_dir, "summary.json")
+    write_json(p, result.summary)
+    paths["summary.json"] = p
+    return paths
