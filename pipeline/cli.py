@@ -16,6 +16,8 @@ from markcal.stages.errors import MarkcalError
 #: taking the top-level and the ``render`` sub-parser collections.
 COMMAND_MODULES: tuple = (
     "markcal.pipeline.cli_selfcal",
+    "markcal.pipeline.cli_servo",
+    "markcal.pipeline.cli_path",
 )
 
 

@@ -378,7 +378,7 @@ def _kkt(jw, gauge):
 
 
 def solve_selfcal(setup: SelfcalSetup, grid: GridViews, angle: AngleViews | None = None,
-                  max_iter: int = 10, tol_mrad: float = 1e-12) -> SelfcalSolution:
+                  max_iter: int = 10, tol_mrad: float = 1e-12, bound: bool = True) -> SelfcalSolution:
     """Solve the stage error map from the measured views.
 
     Parameters
@@ -395,6 +395,9 @@ def solve_selfcal(setup: SelfcalSetup, grid: GridViews, angle: AngleViews | None
         non-linear unknowns; 3-4 iterations converge).
     tol_mrad : float
         Stop when no misalignment rotation changes by more than this.
+    bound : bool
+        Compute the covariance bound (predicted sd of every G and Gθ value)
+        and the condition number; without it those fields are NaN.
 
     Returns
     -------
@@ -448,7 +451,9 @@ def solve_selfcal(setup: SelfcalSetup, grid: GridViews, angle: AngleViews | None
     # covariance bound: (J'WJ)^-1 under the constraints = top-left block of the KKT inverse
     kkt = _kkt(jw, gauge)
     want = np.r_[np.arange(2 * lay.S), lay.gth + np.arange(lay.K)]
-    if kkt.shape[0] <= 6000:        # dense LAPACK: BLAS-3 solves with many right-hand sides
+    if not bound:
+        cov_diag, cond = np.full(len(want), np.nan), float("nan")
+    elif kkt.shape[0] <= 6000:        # dense LAPACK: BLAS-3 solves with many right-hand sides
         dense = kkt.toarray()
         lu_d, piv = scipy.linalg.lu_factor(dense, check_finite=False)
         e = np.zeros((kkt.shape[0], len(want)))
@@ -462,7 +467,7 @@ def solve_selfcal(setup: SelfcalSetup, grid: GridViews, angle: AngleViews | None
         inv_norm = spla.onenormest(spla.LinearOperator(kkt.shape, matvec=lu.solve,
                                                        rmatvec=lambda b: lu.solve(b, trans="T")))
         cond = float(spla.norm(kkt, 1) * inv_norm)
-    cov_diag = np.maximum(cov_diag, 0.0)
+    cov_diag = np.where(np.isnan(cov_diag), np.nan, np.maximum(cov_diag, 0.0))
 
     N = setup.n
     g = x_hat[:2 * lay.S].reshape(lay.S, 2)
