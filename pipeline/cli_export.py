@@ -1,0 +1,95 @@
+"""``markcal export`` and ``markcal inspect``."""
+from __future__ import annotations
+
+import os
+
+from markcal.pipeline.cli import progress
+
+
+def _cor_ctb_options(args):
+    from markcal.reports.export import CorOptions, CtbOptions
+    cor = CorOptions(node_spacing_units=args.node_spacing or 1024.0, outer=args.outer, sign=args.cor_sign)
+    ctb = CtbOptions(node_spacing_bits=args.node_spacing or 65535.0 / 64.0, content=args.ctb_content)
+    return cor, ctb
+
+
+def cmd_export(args) -> int:
+    from markcal.pipeline.flows.export import export_table
+    from markcal.reports.export import FORMATS
+    from markcal.reports.files import atomic_write_bytes
+    from markcal.stages.errors import MarkcalError
+
+    if args.list:
+        for name, (ext, desc) in FORMATS.items():
+            print(f"{name:10s} {ext:5s} {desc}")
+        return 0
+    if not args.format or not args.source or not args.out:
+        raise MarkcalError("usage: markcal export FORMAT RESULT_DIR --out FILE (markcal export --list names the formats)")
+    say = progress(args.quiet)
+    cor, ctb = _cor_ctb_options(args)
+    data, facts = export_table(args.format, args.source, lens_mm=args.lens_mm, cor=cor, ctb=ctb, rtc4=args.rtc4,
+                               fill_missing=args.fill_missing, ax1=args.ax1, ax2=args.ax2, sign=args.sign,
+                               allow_extrapolation=args.allow_extrapolation)
+    atomic_write_bytes(args.out, data)
+    say(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in facts.items()))
+    if facts.get("extrapolated_nodes"):
+        say(f"note: {facts['extrapolated_nodes']} nodes lie outside the measured plate and carry the value at "
+            "its nearest edge")
+    print(os.path.abspath(args.out))
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    from markcal.pipeline.flows.export import inspect_table
+    from markcal.reports.files import atomic_write_text, write_csv
+    from markcal.reports.table_report import render_table_report_html
+
+    cor, ctb = _cor_ctb_options(args)
+    t = inspect_table(args.table, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
+    out = args.out or os.path.splitext(os.path.basename(args.table))[0] + "_inspect"
+    os.makedirs(out, exist_ok=True)
+    import numpy as np
+    gx, gy = np.meshgrid(t.x_mm, t.y_mm)
+    unit = "um" if t.unit == "µm" else t.unit
+    write_csv(os.path.join(out, "table.csv"), {"x_mm": gx.ravel(), "y_mm": gy.ravel(),
+                                                f"u_{unit}": t.u.ravel(), f"v_{unit}": t.v.ravel()})
+    atomic_write_text(os.path.join(out, "report.html"), render_table_report_html(t))
+    print(os.path.abspath(os.path.join(out, "report.html")))
+    return 0
+
+
+def _table_options(p):
+    p.add_argument("--lens-mm", type=float, help="lens field size (mm): galvo scale = 65536 / lens-mm units per mm")
+    p.add_argument("--node-spacing", type=float, default=None,
+                   help="controller units between table nodes (cor default 1024, ctb default 65535/64)")
+    p.add_argument("--outer", choices=["x", "y"], default="x", help="cor: axis of the outer loop of entries (default x)")
+    p.add_argument("--cor-sign", choices=["subtract", "add"], default="subtract",
+                   help="cor: the controller drives nominal - entry (subtract, default) or nominal + entry")
+    p.add_argument("--ctb-content", choices=["absolute", "offset"], default="absolute",
+                   help="ctb: entries are corrected positions (default) or offsets, offset binary")
+    p.add_argument("--sign", type=float, default=1.0, help="a3200: the table holds -sign x measured error (default 1)")
+
+
+def register(sub, render_sub) -> None:
+    """Add ``export`` and ``inspect``."""
+    ex = sub.add_parser("export", help="write a flow's correction as a controller table (cor, ctb, correXion, A3200)")
+    ex.add_argument("format", nargs="?", help="cor, ctb, correxion or a3200 (see --list)")
+    ex.add_argument("source", nargs="?", help="a scan flow output folder (cor, ctb, correxion) or selfcal output (a3200)")
+    ex.add_argument("--out", help="table file to write")
+    ex.add_argument("--list", action="store_true", help="name the formats and exit")
+    _table_options(ex)
+    ex.add_argument("--rtc4", action="store_true", help="correxion: for an RTC4 (16-bit) instead of an RTC5 (20-bit)")
+    ex.add_argument("--fill-missing", action="store_true",
+                    help="correxion: fill undetected fiducials from the correction model instead of refusing")
+    ex.add_argument("--ax1", type=int, default=1, help="a3200: axis number of x")
+    ex.add_argument("--ax2", type=int, default=2, help="a3200: axis number of y")
+    ex.add_argument("--allow-extrapolation", action="store_true",
+                    help="write even when most of the table lies outside the measured plate")
+    ex.add_argument("--quiet", action="store_true")
+    ex.set_defaults(func=cmd_export)
+
+    ins = sub.add_parser("inspect", help="read a controller table back and draw its field (report.html, table.csv)")
+    ins.add_argument("table", help=".cor, .ctb, correXion input or A3200 file")
+    ins.add_argument("--out", help="output folder (default: <name>_inspect)")
+    _table_options(ins)
+    ins.set_defaults(func=cmd_inspect)
