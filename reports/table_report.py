@@ -12,7 +12,7 @@ def _figure(t) -> str:
     mag = np.hypot(t.u, t.v)
     fig = new_figure(11, 5.2)
     ax = fig.add_subplot(1, 2, 1)
-    step = max(1, len(t.x_mm) // 33)
+    step = max(1, len(t.x_mm) // 17)
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(mag.max())
