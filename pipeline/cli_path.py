@@ -1,0 +1,105 @@
+"""``markcal path`` and ``markcal render path``: marking-order optimisation of galvo jobs."""
+from __future__ import annotations
+
+import os
+
+from markcal.stages.errors import MarkcalError
+
+
+def cmd_path(args) -> int:
+    from markcal.pipeline.cli import progress
+    from markcal.pipeline.flows.path import PathOptions, run_path
+    from markcal.reports.path_outputs import write_path_outputs
+    from markcal.stages.path_ga import GAOptions
+    from markcal.stages.path_job import Timing
+    from markcal.stages.path_tour import LocalSearchOptions
+
+    say = progress(args.quiet)
+    timing = Timing(metric=args.metric, jump_speed_mm_s=args.jump_speed_mm_s, settle_s=args.settle_us * 1e-6,
+                    mark_speed_mm_s=args.mark_speed_mm_s, point_dwell_s=args.dwell_us * 1e-6)
+    for k in ("generations", "population", "ga_max_strokes"):
+        if getattr(args, k) < 1:
+            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
+    if args.kicks_per_stroke < 0:
+        raise MarkcalError("--kicks-per-stroke must be >= 0")
+    opt = PathOptions(method=args.method, seed=args.seed, timing=timing,
+                      ga=GAOptions(population=args.population, generations=args.generations),
+                      ls=LocalSearchOptions(kicks_per_stroke=args.kicks_per_stroke),
+                      ga_max_strokes=args.ga_max_strokes)
+    res = run_path(args.job, opt, progress=say)
+    for n in res.notes:
+        say(f"note: {n}")
+    say("writing ordered job and report")
+    paths = write_path_outputs(res, args.out, report=not args.no_report)
+    s = res.summary
+    say(f"{res.method_used}: jumps {s['jump_length_mm']:.2f} mm ({s['length_reduction_vs_input_pct']:.1f} % "
+        f"shorter than input, {s['length_reduction_vs_raster_pct']:.1f} % than raster), "
+        f"job time {s['time_s']:.4g} s")
+    print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    return 0
+
+
+def cmd_render_path(args) -> int:
+    from markcal.fixtures.path_jobs import render_job
+    from markcal.pipeline.cli import progress
+    from markcal.reports.files import atomic_write_text, write_json
+
+    say = progress(args.quiet)
+    if args.n is not None and args.n < 1:
+        raise MarkcalError("--n must be at least 1")
+    job = render_job(args.kind, args.seed, args.n)
+    os.makedirs(args.out, exist_ok=True)
+    points_only = all(s.kind == "point" for s in job.strokes)
+    fmt = args.format or ("csv" if points_only else "json")
+    if fmt == "csv" and not points_only:
+        raise MarkcalError(f"a {args.kind} job has polylines or contours: CSV holds points only (use --format json)")
+    say(f"rendering a {args.kind} job, seed {args.seed}: {job.n} strokes")
+    if fmt == "csv":
+        path = os.path.join(args.out, "job.csv")
+        rows = "".join(f"{float(s.xy_mm[0, 0])!r},{float(s.xy_mm[0, 1])!r}\n" for s in job.strokes)
+        atomic_write_text(path, "x_mm,y_mm\n" + rows)
+    else:
+        path = os.path.join(args.out, "job.json")
+        write_json(path, {"units": "mm", "name": f"markcal render path --kind {args.kind} --seed {args.seed}",
+                          "strokes": [{"kind": s.kind, "xy_mm": (s.xy_mm[0] if s.kind == "point" else s.xy_mm)}
+                                      for s in job.strokes]})
+    print(os.path.abspath(path))
+    return 0
+
+
+def register(sub, render_sub) -> None:
+    """Add ``path`` to the top-level sub-commands and ``path`` to ``render``."""
+    from markcal.pipeline.flows.path import ALIASES, METHODS
+
+    p = sub.add_parser("path", help="marking job -> marking order with short jumps (GA, local search), report")
+    p.add_argument("job", help="job file: .json strokes (point / polyline / contour, mm) or .csv points (x_mm,y_mm)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--method", default="ga+ls", choices=list(METHODS) + sorted(ALIASES),
+                   help="order written out: the paper GA (ga), local search from nearest neighbour (ls), "
+                        "GA then local search (ga+ls, alias ga+2opt; default), or a baseline")
+    p.add_argument("--seed", type=int, default=0, help="seed of the GA and the local-search kicks")
+    p.add_argument("--metric", choices=["distance", "time"], default="distance",
+                   help="minimise jump length or jump time (speed + settle)")
+    p.add_argument("--jump-speed-mm-s", type=float, default=3000.0, help="galvo jump speed (mm/s)")
+    p.add_argument("--settle-us", type=float, default=200.0, help="settle delay after each jump (µs)")
+    p.add_argument("--mark-speed-mm-s", type=float, default=1000.0, help="marking speed (mm/s)")
+    p.add_argument("--dwell-us", type=float, default=500.0, help="laser dwell per point (µs)")
+    p.add_argument("--generations", type=int, default=3000, help="GA generations")
+    p.add_argument("--population", type=int, default=100, help="GA population size")
+    p.add_argument("--ga-max-strokes", type=int, default=500,
+                   help="larger jobs fall back from the GA to local search")
+    p.add_argument("--kicks-per-stroke", type=float, default=50.0,
+                   help="iterated local search: kicks per stroke (at least 20,000, at most 200,000 in all; 0: none)")
+    p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=cmd_path)
+
+    r = render_sub.add_parser("path", help="synthetic marking job (random points, paper-like, fiducial grid, text)")
+    r.add_argument("--kind", choices=["random", "paper", "grid", "text"], default="random")
+    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--n", type=int, default=None, help="points for random (default 1000) and paper (70)")
+    r.add_argument("--format", choices=["json", "csv"], default=None,
+                   help="default: csv for point jobs, json otherwise")
+    r.add_argument("--out", required=True)
+    r.add_argument("--quiet", action="store_true")
+    r.set_defaults(func=cmd_render_path)

@@ -1,0 +1,314 @@
+"""The path flow: marking-order optimisation of a galvo marking job (paper 002).
+
+Reads a job (JSON strokes or CSV points, mm), evaluates the input order and
+the raster and nearest-neighbour baselines, runs the chosen method (the
+paper's GA, local search, or the GA followed by local search) and returns the
+tours, their jump lengths and estimated times, and the GA's convergence curve.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from markcal.stages.errors import MarkcalError
+from markcal.stages.path_ga import GAOptions, GAResult, run_ga
+from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_tour, duplicate_groups, \
+    input_tour, make_job, tour_stats
+from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, n_kicks_for, \
+    nearest_neighbour_tour, raster_tour
+
+#: methods a user can choose; ``ga+2opt`` is another name of ``ga+ls``
+METHODS = ("input", "raster", "nn", "ls", "ga", "ga+ls")
+ALIASES = {"ga+2opt": "ga+ls", "ga+local": "ga+ls", "local": "ls", "2opt": "ls"}
+#: keys of a JSON job and of its strokes
+JOB_KEYS = {"units", "name", "description", "strokes"}
+KIND_ALIASES = {"point": "point", "polyline": "polyline", "open": "polyline", "line": "polyline",
+                "contour": "contour", "closed": "contour"}
+
+
+@dataclass(frozen=True)
+class PathOptions:
+    """Settings of the path flow."""
+
+    method: str = "ga+ls"
+    seed: int = 0
+    timing: Timing = field(default_factory=Timing)
+    ga: GAOptions = field(default_factory=GAOptions)
+    ls: LocalSearchOptions = field(default_factory=LocalSearchOptions)
+    ga_max_strokes: int = 500
+
+
+@dataclass(frozen=True, eq=False)
+class PathInput:
+    """A job as read: the strokes and what is needed to write the ordered job in the same format."""
+
+    job: Job
+    fmt: str                     # "json" or "csv"
+    document: dict | None        # JSON: the parsed document (strokes as given)
+    csv_header: list | None      # CSV: the header, and the rows as text
+    csv_rows: list | None
+
+
+@dataclass(frozen=True, eq=False)
+class PathResult:
+    """Everything the path flow found; ``reports`` turns it into files."""
+
+    source: str
+    inp: PathInput
+    options: PathOptions
+    method_used: str
+    tours: dict                  # name -> Tour (input, raster, nn, then the methods run)
+    stats: dict                  # name -> tour_stats dict
+    runtimes_s: dict             # name -> s
+    ga: GAResult | None
+    duplicates: list             # groups of stroke indices
+    notes: list                  # what the user should know (fallback, duplicates)
+    summary: dict
+
+    @property
+    def tour(self) -> Tour:
+        """The tour written out (the chosen method's)."""
+        return self.tours[self.method_used]
+
+
+# ----------------------------------------------------------------------------- reading
+
+def _read_json(path) -> PathInput:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as exc:
+        raise MarkcalError(f"cannot read job ({exc.strerror})", path) from None
+    if not text.strip():
+        raise MarkcalError("empty file: the job has no strokes", path)
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MarkcalError(f"not valid JSON ({exc.msg}, line {exc.lineno})", path) from None
+    if not isinstance(doc, dict) or "strokes" not in doc:
+        raise MarkcalError('a JSON job is an object with a "strokes" list', path)
+    unknown = sorted(set(doc) - JOB_KEYS)
+    if unknown:
+        raise MarkcalError(f"unknown key(s) {', '.join(map(repr, unknown))} (allowed: {', '.join(sorted(JOB_KEYS))})",
+                           path)
+    if doc.get("units", "mm") != "mm":
+        raise MarkcalError(f'units must be "mm", not {doc.get("units")!r}', path)
+    strokes = doc["strokes"]
+    if not isinstance(strokes, list):
+        raise MarkcalError('"strokes" must be a list', path)
+    items = []
+    for i, s in enumerate(strokes):
+        if not isinstance(s, dict) or "kind" not in s or "xy_mm" not in s:
+            raise MarkcalError(f'stroke {i}: needs "kind" and "xy_mm"', path)
+        kind = KIND_ALIASES.get(str(s["kind"]).lower())
+        if kind is None:
+            raise MarkcalError(f"stroke {i}: unknown kind {s['kind']!r} (point, polyline or contour)", path)
+        xy = s["xy_mm"]
+        try:
+            xy = np.array(xy, dtype=float)
+        except (TypeError, ValueError):
+            raise MarkcalError(f"stroke {i} ({kind}): xy_mm must hold numbers (x_mm, y_mm pairs)", path) from None
+        if kind == "point" and xy.ndim == 1 and xy.size != 2:
+            raise MarkcalError(f"stroke {i} (point): xy_mm must be [x, y]", path)
+        if xy.ndim == 2 and xy.shape[1] != 2 or xy.ndim > 2:
+            raise MarkcalError(f"stroke {i} ({kind}): xy_mm must be a list of [x, y] pairs", path)
+        items.append((kind, xy))
+    return PathInput(make_job(items, path), "json", doc, None, None)
+
+
+def _read_csv(path) -> PathInput:
+    try:
+        with open(path, encoding="utf-8", newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as exc:
+        raise MarkcalError(f"cannot read job ({exc.strerror})", path) from None
+    except UnicodeDecodeError:
+        raise MarkcalError("not a text CSV file", path) from None
+    rows = [r for r in rows if any(c.strip() for c in r)]
+    if not rows:
+        raise MarkcalError("empty file: the job has no strokes", path)
+    header = [c.strip() for c in rows[0]]
+    if "x_mm" not in header or "y_mm" not in header:
+        raise MarkcalError(f"CSV header must name x_mm and y_mm (has {', '.join(header)})", path)
+    ix, iy = header.index("x_mm"), header.index("y_mm")
+    body = rows[1:]
+    if not body:
+        raise MarkcalError("the job has no strokes (header only)", path)
+    xy = np.empty((len(body), 2))
+    for k, r in enumerate(body):
+        if len(r) != len(header):
+            raise MarkcalError(f"row {k + 2}: {len(r)} fields, the header has {len(header)}", path)
+        try:
+            xy[k] = float(r[ix]), float(r[iy])
+        except ValueError:
+            raise MarkcalError(f"row {k + 2}: x_mm, y_mm must be numbers ({r[ix]!r}, {r[iy]!r})", path) from None
+        if not np.all(np.isfinite(xy[k])):
+            raise MarkcalError(f"row {k + 2} (point {k}): NaN or infinite coordinate", path)
+    return PathInput(make_job([("point", p) for p in xy], path), "csv", None, header, body)
+
+
+def read_job(path) -> PathInput:
+    """Read a job file: ``.json`` strokes or ``.csv`` points (header ``x_mm,y_mm``), mm.
+
+    Raises
+    ------
+    MarkcalError
+        Missing or empty file, bad syntax, no strokes, NaN, too few vertices.
+    """
+    ext = os.path.splitext(str(path))[1].lower()
+    if not os.path.exists(path):
+        raise MarkcalError("no such file", path)
+    if ext == ".json":
+        return _read_json(path)
+    if ext in (".csv", ".txt"):
+        return _read_csv(path)
+    raise MarkcalError("unknown job format (use .json strokes or .csv points with x_mm,y_mm)", path)
+
+
+# ----------------------------------------------------------------------------- flow
+
+def _method(name: str) -> str:
+    m = ALIASES.get(name, name)
+    if m not in METHODS:
+        raise MarkcalError(f"unknown method {name!r} (choose from {', '.join(METHODS + tuple(ALIASES))})")
+    return m
+
+
+def run_path(job_path, options: PathOptions | None = None, progress=None) -> PathResult:
+    """Run the path flow on one job file.
+
+    Parameters
+    ----------
+    job_path : path
+        JSON job or CSV points (mm).
+    options : PathOptions, optional
+    progress : callable, optional
+        Called with a short text before each step.
+
+    Raises
+    ------
+    MarkcalError
+        Bad input; the message names the file.
+    """
+    opt = options or PathOptions()
+    method = _method(opt.method)
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    say("reading job")
+    inp = read_job(job_path)
+    try:
+        return _run(inp, str(job_path), opt, method, say, t0)
+    except MarkcalError as exc:
+        raise exc.with_path(job_path) from None
+
+
+def optimise_job(job: Job, options: PathOptions | None = None, progress=None) -> tuple:
+    """Baselines and the chosen method on a job in memory.
+
+    Returns
+    -------
+    (method_used, tours, runtimes_s, ga_result, notes)
+    """
+    opt = options or PathOptions()
+    method = _method(opt.method)
+    say = progress or (lambda msg: None)
+    tm = opt.timing
+    tours, rt, notes = {}, {}, []
+    tours["input"] = input_tour(job)
+    rt["input"] = 0.0
+    t = time.perf_counter()
+    tours["raster"] = raster_tour(job)
+    rt["raster"] = time.perf_counter() - t
+    t = time.perf_counter()
+    tours["nn"] = best_entries(job, nearest_neighbour_tour(job), tm)
+    rt["nn"] = time.perf_counter() - t
+    ga = None
+    used = method
+    if method in ("ga", "ga+ls") and job.n > opt.ga_max_strokes:
+        used = "ls"
+        notes.append(f"{job.n} strokes is more than the GA's limit of {opt.ga_max_strokes} (--ga-max-strokes): "
+                     f"method {method} fell back to local search (ls)")
+    if used in ("ga", "ga+ls"):
+        gopt = GAOptions(**{**opt.ga.__dict__, "seed": opt.seed})
+        say(f"GA: population {gopt.population}, {gopt.generations} generations, CP {gopt.crossover_p}, "
+            f"MP {gopt.mutation_p}")
+        ga = run_ga(job, tm, gopt, progress=lambda g, c: say(f"GA generation {g}: best {c:.6g}")
+                    if g % 1000 == 0 else None)
+        tours["ga"] = ga.tour
+        rt["ga"] = ga.runtime_s
+    if used in ("ls", "ga+ls"):
+        lopt = LocalSearchOptions(**{**opt.ls.__dict__, "seed": opt.seed})
+        start_name = "ga" if used == "ga+ls" else "nn"
+        say(f"local search from the {start_name} tour (2-opt, Or-opt, {n_kicks_for(job.n, lopt)} kicks)")
+        t = time.perf_counter()
+        tours[used] = local_search(job, tours[start_name], tm, lopt)
+        rt[used] = time.perf_counter() - t + (rt["ga"] if used == "ga+ls" else rt["nn"])
+    for tr in tours.values():
+        check_tour(job, tr)
+    return used, tours, rt, ga, notes
+
+
+def _run(inp: PathInput, source: str, opt: PathOptions, method: str, say, t0) -> PathResult:
+    job = inp.job
+    tm = opt.timing
+    dups = duplicate_groups(job)
+    notes = []
+    if dups:
+        extra = sum(len(g) - 1 for g in dups)
+        shown = "; ".join(",".join(map(str, g)) for g in dups[:5]) + ("; ..." if len(dups) > 5 else "")
+        notes.append(f"{extra} duplicate stroke(s) kept and marked again (same strokes: {shown})")
+    say(f"{job.n} strokes ({int((job.kinds == POINT).sum())} points, {int((job.kinds == POLYLINE).sum())} "
+        f"polylines, {int((job.kinds == CONTOUR).sum())} contours)")
+    used, tours, rt, ga, more = optimise_job(job, PathOptions(**{**opt.__dict__, "method": method}), say)
+    notes = more + notes
+    stats = {k: tour_stats(job, t, tm) for k, t in tours.items()}
+    summary = _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, time.perf_counter() - t0)
+    return PathResult(source, inp, opt, used, tours, stats, rt, ga, dups, notes, summary)
+
+
+def _pct(new, old):
+    return float(100.0 * (1.0 - new / old)) if old > 0 else 0.0
+
+
+def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime_s) -> dict:
+    job = inp.job
+    tm = opt.timing
+    s = stats[used]
+    out = {
+        "kind": "path", "source": source, "format": inp.fmt,
+        "n_strokes": job.n, "n_points": int((job.kinds == POINT).sum()),
+        "n_polylines": int((job.kinds == POLYLINE).sum()), "n_contours": int((job.kinds == CONTOUR).sum()),
+        "n_vertices": int(sum(len(st.xy_mm) for st in job.strokes)),
+        "mark_length_mm": job.mark_length_mm,
+        "method": method, "method_used": used, "fallback": used != method,
+        "metric": tm.metric, "jump_speed_mm_s": tm.jump_speed_mm_s, "settle_s": tm.settle_s,
+        "mark_speed_mm_s": tm.mark_speed_mm_s, "point_dwell_s": tm.point_dwell_s, "seed": opt.seed,
+        "jump_length_mm": s["jump_length_mm"], "jump_time_s": s["jump_time_s"],
+        "mark_time_s": s["mark_time_s"], "time_s": s["time_s"],
+        "length_reduction_vs_input_pct": _pct(s["jump_length_mm"], stats["input"]["jump_length_mm"]),
+        "length_reduction_vs_raster_pct": _pct(s["jump_length_mm"], stats["raster"]["jump_length_mm"]),
+        "length_reduction_vs_nn_pct": _pct(s["jump_length_mm"], stats["nn"]["jump_length_mm"]),
+        "time_reduction_vs_input_pct": _pct(s["time_s"], stats["input"]["time_s"]),
+    }
+    for name, st in stats.items():
+        key = name.replace("+", "_")
+        out[f"{key}_jump_length_mm"] = st["jump_length_mm"]
+        out[f"{key}_time_s"] = st["time_s"]
+        out[f"{key}_runtime_s"] = float(rt[name])
+    if ga is not None:
+        out.update({"ga_population": opt.ga.population, "ga_generations": len(ga.curve) - 1,
+                    "ga_crossover_p": opt.ga.crossover_p, "ga_mutation_p": opt.ga.mutation_p,
+                    "ga_evaluations": ga.evaluations})
+        if "ga+ls" in stats:
+            out["ga_ls_improvement_vs_ga_pct"] = _pct(stats["ga+ls"]["jump_length_mm"],
+                                                      stats["ga"]["jump_length_mm"])
+    out["n_duplicate_strokes"] = int(sum(len(g) - 1 for g in dups))
+    out["duplicate_strokes"] = [list(map(int, g)) for g in dups]
+    out["notes"] = list(notes)
+    out["runtime_s"] = float(runtime_s)
+    return out
