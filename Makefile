@@ -39,8 +39,12 @@ test: sysdeps $(STAMP)
 	$(PY) -m pytest
 
 bench: sysdeps $(STAMP)
+	$(PY) -m pip install -q -e '.[test,bench]'
 	$(PY) benchmarks/bench_scan.py
 	$(PY) benchmarks/accuracy_sweep.py
+	$(PY) benchmarks/bench_selfcal.py
+	$(PY) benchmarks/bench_servo.py
+	$(PY) benchmarks/bench_path.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) bench_out .pytest_cache
