@@ -8,24 +8,37 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.plate import PlateSpec
 
 
-def read_plate_spec(path) -> PlateSpec:
-    """Read a PLATE.toml; unknown keys are an error so typos do not pass silently."""
+def load_toml(path, what: str = "config file") -> dict:
+    """Read a TOML file; a missing file or bad TOML is a MarkcalError naming it."""
     path = os.fspath(path)
     try:
         with open(path, "rb") as fh:
-            d = tomllib.load(fh)
+            return tomllib.load(fh)
     except FileNotFoundError:
-        raise MarkcalError("no such plate spec", path) from None
+        raise MarkcalError(f"no such {what}", path) from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise MarkcalError(f"not valid TOML: {exc}", path) from None
-    allowed = {"grid": {"rows", "cols", "pitch_mm"}, "fiducial": {"ring_radii_mm"},
-               "galvo": {"d_mm", "e_mm"}, "correction": {"grid_step_mm"}}
+    except OSError as exc:
+        raise MarkcalError(f"cannot read ({exc})", path) from None
+
+
+def check_sections(d: dict, allowed: dict, path) -> None:
+    """Refuse sections and keys not in ``allowed`` (section -> set of keys): typos must not pass silently."""
     for sec, keys in d.items():
         if sec not in allowed or not isinstance(keys, dict):
-            raise MarkcalError(f"unknown section [{sec}]", path)
+            raise MarkcalError(f"unknown section [{sec}] (known: {', '.join(allowed)})", path)
         for k in keys:
             if k not in allowed[sec]:
                 raise MarkcalError(f"unknown key '{k}' in [{sec}]", path)
+
+
+def read_plate_spec(path) -> PlateSpec:
+    """Read a PLATE.toml; unknown keys are an error so typos do not pass silently."""
+    path = os.fspath(path)
+    d = load_toml(path, "plate spec")
+    allowed = {"grid": {"rows", "cols", "pitch_mm"}, "fiducial": {"ring_radii_mm"},
+               "galvo": {"d_mm", "e_mm"}, "correction": {"grid_step_mm"}}
+    check_sections(d, allowed, path)
     g, f = d.get("grid", {}), d.get("fiducial", {})
     gv, c = d.get("galvo", {}), d.get("correction", {})
     default = PlateSpec()
@@ -73,13 +86,7 @@ def read_selfcal_setup(path):
     from markcal.stages.selfcal import SelfcalSetup
 
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            d = tomllib.load(fh)
-    except FileNotFoundError:
-        raise MarkcalError("no such setup file", path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise MarkcalError(f"not valid TOML: {exc}", path) from None
+    d = load_toml(path, "setup file")
     allowed = {"n", "pitch_mm", "k", "views"}
     for key in d:
         if key not in allowed:

@@ -12,11 +12,11 @@ from __future__ import annotations
 import math
 import os
 import time
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
+from markcal.pipeline.config import load_toml
 from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_control import PIDGains, RepetitiveParams, StabilityCheck, check_rc_stability
 from markcal.stages.servo_plant import PlantParams, discretise
@@ -100,13 +100,7 @@ def read_servo_config(path) -> ServoConfig:
     settle_band_um``. Missing keys take the paper's values.
     """
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            d = tomllib.load(fh)
-    except FileNotFoundError:
-        raise MarkcalError("no such config file", path) from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise MarkcalError(f"not valid TOML: {exc}", path) from None
+    d = load_toml(path, "config file")
     plant_kw, gain_kw, top_kw = {}, {}, {}
     for sec, keys in d.items():
         if sec not in _SECTIONS or not isinstance(keys, dict):
