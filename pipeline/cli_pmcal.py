@@ -1,0 +1,134 @@
+"""``markcal pmcal``, ``markcal pmcal command``, ``markcal drift`` and ``markcal render pmcal``.
+
+``pmcal`` takes one positional word: a session folder, or ``command`` followed by
+``calibration.json targets.csv`` (a session folder literally named ``command``
+must be given as ``./command``).
+"""
+from __future__ import annotations
+
+import os
+
+from markcal.pipeline.cli import progress
+from markcal.stages.errors import MarkcalError
+
+
+def cmd_pmcal(args) -> int:
+    if args.session == "command":
+        return _cmd_command(args)
+    if args.extra:
+        raise MarkcalError(f"unexpected argument(s) after the session folder: {' '.join(args.extra)}")
+    if args.depth_um is not None:
+        raise MarkcalError("--depth-um belongs to 'markcal pmcal command'")
+    from markcal.pipeline.flows.pmcal import run_pmcal
+    from markcal.reports.pmcal_outputs import write_pmcal_outputs
+
+    say = progress(args.quiet)
+    res = run_pmcal(args.session, method=args.method, seed=args.seed, progress=say)
+    for w in res.warnings:
+        say(f"warning: {w}")
+    paths = write_pmcal_outputs(res, args.out, report=not args.no_report)
+    s = res.summary
+    msg = (f"{res.method}: F {s['F']:.4f}; non-orthogonality {s['nonorth_xy_urad']:.1f}/{s['nonorth_xz_urad']:.1f}/"
+           f"{s['nonorth_yz_urad']:.1f} µrad; residual RMS axes {s['axes_rms_um']:.4f}, pose {s['pose_rms_um']:.4f} µm")
+    if "landing_rms_um" in s:
+        msg += f"; against truth: landing RMS {s['landing_rms_um']:.4f} µm, max {s['landing_max_um']:.4f} µm"
+    say(msg)
+    print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    return 0
+
+
+def _cmd_command(args) -> int:
+    from markcal.pipeline.flows.pmcal import run_command
+    from markcal.reports.files import write_csv
+
+    if len(args.extra) != 2:
+        raise MarkcalError("usage: markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
+    if args.depth_um is None:
+        raise MarkcalError("markcal pmcal command needs --depth-um")
+    out = os.path.abspath(args.out)
+    if out in (os.path.abspath(args.extra[0]), os.path.abspath(args.extra[1])):
+        raise MarkcalError("--out would overwrite an input file", args.out)
+    cols = run_command(args.extra[0], args.extra[1], args.depth_um)
+    write_csv(out, cols)
+    progress(args.quiet)(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
+    print(out)
+    return 0
+
+
+def cmd_drift(args) -> int:
+    from markcal.pipeline.flows.drift import run_drift
+    from markcal.reports.pmcal_outputs import write_drift_outputs
+
+    say = progress(args.quiet)
+    res = run_drift(args.drift, method=args.method, truth_path=args.truth, noise_um=args.noise_um, alpha=args.alpha)
+    paths = write_drift_outputs(res, args.out, report=not args.no_report)
+    s = res.summary
+    say(f"{res.method}: η x {s['eta_x_pct']:.1f} %, y {s['eta_y_pct']:.1f} %, z {s['eta_z_pct']:.1f} % "
+        f"({'against the true drift' if s['truth'] else 'at the samples'})")
+    print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    return 0
+
+
+def cmd_render_pmcal(args) -> int:
+    import numpy as np
+
+    from markcal.fixtures.pm_session import SessionOptions, render_pm_session
+    from markcal.reports.files import write_csv, write_json
+
+    if not (args.noise_um >= 0 and np.isfinite(args.noise_um)):
+        raise MarkcalError(f"--noise-um must be a non-negative number (got {args.noise_um})")
+    say = progress(args.quiet)
+    say(f"rendering a pmcal session, seed {args.seed}")
+    r = render_pm_session(args.seed, SessionOptions(noise_um=args.noise_um), drift_kind=args.drift_kind)
+    os.makedirs(args.out, exist_ok=True)
+    write_csv(os.path.join(args.out, "axes.csv"), r.axes)
+    write_csv(os.path.join(args.out, "pose.csv"), r.pose)
+    write_csv(os.path.join(args.out, "probe.csv"), r.probe)
+    write_csv(os.path.join(args.out, "drift.csv"), r.drift)
+    write_csv(os.path.join(args.out, "drift_true.csv"),
+              {"t_min": r.drift_true_t_min, "dx_um": r.drift_true_um[:, 0], "dy_um": r.drift_true_um[:, 1],
+               "dz_um": r.drift_true_um[:, 2]})
+    write_json(os.path.join(args.out, "truth.json"), r.truth)
+    print(os.path.abspath(args.out))
+    return 0
+
+
+def register(sub, render_sub) -> None:
+    """Add ``pmcal`` and ``drift`` to ``sub`` and ``pmcal`` to ``render_sub``."""
+    from markcal.pipeline.flows.pmcal import METHODS
+    from markcal.stages.drift import METHODS as DRIFT_METHODS
+
+    import argparse
+
+    pc = sub.add_parser("pmcal", formatter_class=argparse.RawDescriptionHelpFormatter, help="precision-marking machine calibration (GA / least squares); "
+                        "'pmcal command CAL.json TARGETS.csv' makes stage commands",
+                        description="markcal pmcal SESSION_DIR --out DIR [--method ga|lsq|ga+lsq]\n"
+                        "markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
+    pc.add_argument("session", help="session folder (axes.csv, pose.csv, probe.csv, drift.csv), or the word 'command'")
+    pc.add_argument("extra", nargs="*", help="with 'command': CALIBRATION.json TARGETS.csv")
+    pc.add_argument("--out", required=True, help="output folder (calibration) or COMMANDS.csv (command)")
+    pc.add_argument("--method", choices=METHODS, default="ga+lsq", help="calibration written (default ga+lsq)")
+    pc.add_argument("--seed", type=int, default=0, help="GA seed (default 0)")
+    pc.add_argument("--depth-um", type=float, default=None, help="command: depth along the surface normal, µm")
+    pc.add_argument("--no-report", action="store_true", help="skip report.html")
+    pc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    pc.set_defaults(func=cmd_pmcal)
+
+    dr = sub.add_parser("drift", help="online drift compensation from reference-array samples; η per axis")
+    dr.add_argument("drift", help="drift.csv: t_min,dx_um,dy_um,dz_um")
+    dr.add_argument("--out", required=True, help="output folder")
+    dr.add_argument("--method", choices=list(DRIFT_METHODS), default="kalman", help="compensation written (default kalman)")
+    dr.add_argument("--truth", default=None, help="true drift at fine resolution (drift_true.csv) to judge between samples")
+    dr.add_argument("--noise-um", type=float, default=0.005, help="noise of one drift sample, µm (Kalman filters)")
+    dr.add_argument("--alpha", type=float, default=0.8, help="α of the paper's filter (default 0.8)")
+    dr.add_argument("--no-report", action="store_true", help="skip report.html")
+    dr.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    dr.set_defaults(func=cmd_drift)
+
+    rp = render_sub.add_parser("pmcal", help="calibration session of a precision-marking machine (paper 000)")
+    rp.add_argument("--seed", type=int, default=0)
+    rp.add_argument("--out", required=True)
+    rp.add_argument("--noise-um", type=float, default=0.010, help="measurement noise (1 σ), µm")
+    rp.add_argument("--drift-kind", choices=["thermal", "wander"], default="thermal")
+    rp.add_argument("--quiet", action="store_true")
+    rp.set_defaults(func=cmd_render_pmcal)

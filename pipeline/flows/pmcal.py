@@ -1,0 +1,241 @@
+"""The pmcal flow: static calibration of a precision-marking machine (paper 000 §3).
+
+Reads a session folder (``axes.csv``, ``pose.csv``, ``probe.csv``, optional
+``drift.csv``), fits the machine model by the paper's GA, by least squares and
+by GA + least squares, and, when a ``truth.json`` from the renderer lies beside
+them, compares each with the truth (parameter errors, landing of 100 random
+targets on the true machine). Also: ``run_command`` turns OM targets into stage
+commands with a calibration.
+"""
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from markcal.pipeline.tables import read_table
+from markcal.stages.errors import MarkcalError
+from markcal.stages.pm_fit import SessionData, error_terms, fit_lsq, model_from_theta, residual_parts
+from markcal.stages.pm_ga import GAOptions, run_ga
+from markcal.stages.pm_model import PMModel, command_for_targets, landing_errors, model_from_dict, model_to_dict
+
+__all__ = ["METHODS", "SESSION_FILES", "PmcalResult", "read_session", "run_pmcal", "run_command",
+           "read_calibration", "landing_check"]
+
+METHODS = ("ga", "lsq", "ga+lsq")
+#: session files; drift.csv is optional (E_dyn is then 0)
+SESSION_FILES = ("axes.csv", "pose.csv", "probe.csv", "drift.csv")
+#: a pose pair whose residual exceeds this after the fit is reported as mismatched (µm)
+MISMATCH_UM = 1.0
+#: parameters compared with the truth: key, unit
+COMPARED = (("scale_x_ppm", "ppm"), ("scale_y_ppm", "ppm"), ("scale_z_ppm", "ppm"),
+            ("nonorth_xy_urad", "µrad"), ("nonorth_xz_urad", "µrad"), ("nonorth_yz_urad", "µrad"),
+            ("plane_tilt_x_urad", "µrad"), ("plane_tilt_y_urad", "µrad"))
+
+
+@dataclass(frozen=True)
+class MethodFit:
+    """One calibration method's outcome."""
+    method: str
+    theta: np.ndarray
+    model: PMModel
+    terms: dict
+    seconds: float
+    residuals: tuple  # axes (N, 3), pose (M, 3), probe (K,) in µm
+    truth_errors: dict | None  # parameter errors and landing statistics against truth.json
+
+
+@dataclass(frozen=True)
+class PmcalResult:
+    """What the pmcal flow returns: the chosen fit, all three fits, GA convergence, the summary."""
+    source: str
+    method: str
+    seed: int
+    data: SessionData
+    fits: dict
+    ga_best_f: np.ndarray
+    ga_mean_f: np.ndarray
+    warnings: list
+    truth: dict | None
+    summary: dict
+
+    @property
+    def chosen(self) -> MethodFit:
+        return self.fits[self.method]
+
+
+def _xyz(t, names):
+    return np.column_stack([t[n] for n in names])
+
+
+def _check_not_collinear(xy: np.ndarray, what: str, path) -> None:
+    if len(xy) < 3:
+        raise MarkcalError(f"{len(xy)} {what}: need at least 3 non-collinear points", path)
+    s = np.linalg.svd(xy - xy.mean(0), compute_uv=False)
+    if s[1] <= 1e-6 * max(s[0], 1e-12):
+        raise MarkcalError(f"the {what} are collinear (x, y on one line): a plane needs 3 non-collinear points", path)
+
+
+def read_session(folder) -> tuple:
+    """Read and check a session folder; returns (SessionData, warnings)."""
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        raise MarkcalError("no such session folder", folder)
+    for name in SESSION_FILES[:3]:
+        if not os.path.isfile(os.path.join(folder, name)):
+            if name == "pose.csv" and os.path.isdir(os.path.join(folder, "om")):
+                raise MarkcalError("an om/ image folder instead of pose.csv is not supported yet: "
+                                   "measure the marks and write pose.csv", os.path.join(folder, "om"))
+            raise MarkcalError(f"missing {name} (a session holds {', '.join(SESSION_FILES[:3])}; drift.csv optional)",
+                               os.path.join(folder, name))
+    warnings = []
+    p = os.path.join(folder, "axes.csv")
+    t = read_table(p, ("cx_um", "cy_um", "cz_um", "px_um", "py_um", "pz_um"))
+    c_ax, p_ax = _xyz(t, ("cx_um", "cy_um", "cz_um")), _xyz(t, ("px_um", "py_um", "pz_um"))
+    for j in range(3):
+        if len(np.unique(c_ax[:, j])) < 3:
+            raise MarkcalError(f"axis {'xyz'[j]} takes fewer than 3 distinct commanded positions: "
+                               "cannot fit its scale and straightness", p)
+    p = os.path.join(folder, "pose.csv")
+    t = read_table(p, ("x_pm_um", "y_pm_um", "z_pm_um", "x_om_um", "y_om_um", "z_om_um"))
+    c_pose, x_om = _xyz(t, ("x_pm_um", "y_pm_um", "z_pm_um")), _xyz(t, ("x_om_um", "y_om_um", "z_om_um"))
+    _check_not_collinear(c_pose[:, :2], "pose marks", p)
+    if len(c_pose) < 6:
+        warnings.append(f"pose.csv: only {len(c_pose)} mark pairs; the pose is poorly determined below 6")
+    p = os.path.join(folder, "probe.csv")
+    t = read_table(p, ("x_um", "y_um", "z_um"), key=("x_um", "y_um"))
+    c_probe = _xyz(t, ("x_um", "y_um", "z_um"))
+    _check_not_collinear(c_probe[:, :2], "probe points", p)
+    nx, ny = len(np.unique(c_probe[:, 0])), len(np.unique(c_probe[:, 1]))
+    if len(c_probe) < 25 or nx < 5 or ny < 5:
+        warnings.append(f"probe.csv: {len(c_probe)} points ({nx} x positions, {ny} y positions), fewer than "
+                        "the paper's 5 x 5 grid; the plane is less certain")
+    drift = np.zeros((0, 3))
+    p = os.path.join(folder, "drift.csv")
+    if os.path.isfile(p):
+        t = read_table(p, ("t_min", "dx_um", "dy_um", "dz_um"))
+        _check_time_order(t["t_min"], p)
+        drift = _xyz(t, ("dx_um", "dy_um", "dz_um"))
+    else:
+        warnings.append("no drift.csv: E_dyn is 0")
+    return SessionData(c_ax, p_ax, c_pose, x_om, c_probe, drift), warnings
+
+
+def _check_time_order(t_min: np.ndarray, path) -> None:
+    bad = np.flatnonzero(np.diff(t_min) <= 0)
+    if len(bad):
+        i = int(bad[0])
+        raise MarkcalError(f"out of time order: line {i + 3} has t_min = {t_min[i + 1]:g} after "
+                           f"{t_min[i]:g} on line {i + 2} (times must increase)", path)
+
+
+def landing_check(true_model: PMModel, model: PMModel, n: int = 100, depth_um: float = 0.5, seed: int = 12345,
+                  half_um: float = 20000.0) -> dict:
+    """Land ``n`` random OM targets (within ±half_um) commanded through ``model`` on ``true_model``."""
+    xy = np.random.default_rng(seed).uniform(-half_um, half_um, (n, 2))
+    c = command_for_targets(model, xy, depth_um)
+    lat, dep = landing_errors(true_model, xy, depth_um, c)
+    return {"landing_rms_um": float(np.sqrt(np.mean(lat ** 2))), "landing_max_um": float(lat.max()),
+            "depth_err_max_um": float(np.abs(dep).max()), "depth_err_rms_um": float(np.sqrt(np.mean(dep ** 2)))}
+
+
+def _truth_errors(model: PMModel, truth: dict, true_model: PMModel) -> dict:
+    est = model_to_dict(model)
+    out = {f"err_{k}": est[k] - truth[k] for k, _ in COMPARED}
+    out["err_pose_rot_urad"] = float(np.linalg.norm(np.array(est["rotvec_urad"]) - truth["rotvec_urad"]))
+    out.update(landing_check(true_model, model))
+    return out
+
+
+def _read_truth(folder):
+    p = os.path.join(folder, "truth.json")
+    if not os.path.isfile(p):
+        return None, None
+    try:
+        with open(p, encoding="utf-8") as fh:
+            truth = json.load(fh)
+        return truth, model_from_dict(truth)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise MarkcalError(f"cannot read truth ({exc})", p) from None
+
+
+def run_pmcal(folder, method: str = "ga+lsq", seed: int = 0, progress=None) -> PmcalResult:
+    """Calibrate from a session folder with all three methods; ``method`` is the one returned as chosen."""
+    say = progress or (lambda msg: None)
+    if method not in METHODS:
+        raise MarkcalError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
+    folder = os.fspath(folder)
+    data, warnings = read_session(folder)
+    truth, true_model = _read_truth(folder)
+    fits = {}
+    t0 = time.perf_counter()
+    ga = run_ga(data, GAOptions(seed=seed))
+    t_ga = time.perf_counter() - t0
+    say(f"GA: F = {ga.terms['F']:.4f} after {len(ga.best_f)} generations ({t_ga:.2f} s)")
+    t0 = time.perf_counter()
+    lsq = fit_lsq(data)
+    t_lsq = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    gl = fit_lsq(data, ga.theta)
+    t_gl = time.perf_counter() - t0 + t_ga
+    for name, th, sec in (("ga", ga.theta, t_ga), ("lsq", lsq.theta, t_lsq), ("ga+lsq", gl.theta, t_gl)):
+        model = model_from_theta(th)
+        terms = {k: float(v[0]) for k, v in error_terms(th, data).items()}
+        ra, rp, rf, _, _ = residual_parts(th, data)
+        te = _truth_errors(model, truth, true_model) if truth is not None else None
+        fits[name] = MethodFit(name, th, model, terms, sec, (ra[0], rp[0], rf[0]), te)
+    ch = fits[method]
+    rp_norm = np.linalg.norm(ch.residuals[1], axis=1)
+    if rp_norm.max() > MISMATCH_UM:
+        i = int(np.argmax(rp_norm))
+        raise MarkcalError(f"line {i + 2}: this pose pair does not match the others (residual {rp_norm[i]:.2f} µm "
+                           f"after the fit, limit {MISMATCH_UM:g} µm): mismatched PM and OM sides?",
+                           os.path.join(folder, "pose.csv"))
+    s = {"method": method, "seed": int(seed), "n_axis_points": len(data.c_axes), "n_pose_pairs": len(data.c_pose),
+         "n_probe_points": len(data.c_probe), "n_drift_samples": len(data.drift_um),
+         "n_warnings": len(warnings)}
+    for k in ("ortho", "pose", "flat", "dyn", "F"):
+        s[f"E_{k}" if k != "F" else "F"] = ch.terms[k]
+    s["axes_rms_um"] = float(np.sqrt(np.mean(np.sum(ch.residuals[0] ** 2, 1))))
+    s["pose_rms_um"] = float(np.sqrt(np.mean(np.sum(ch.residuals[1] ** 2, 1))))
+    s["probe_rms_um"] = float(np.sqrt(np.mean(ch.residuals[2] ** 2)))
+    d = model_to_dict(ch.model)
+    for k in ("scale_x_ppm", "scale_y_ppm", "scale_z_ppm", "nonorth_xy_urad", "nonorth_xz_urad", "nonorth_yz_urad",
+              "plane_a", "plane_b", "plane_c_um", "plane_tilt_x_urad", "plane_tilt_y_urad"):
+        s[k] = d[k]
+    for name, f in fits.items():
+        s[f"F_{name.replace('+', '_')}"] = f.terms["F"]
+    if ch.truth_errors:
+        for k, v in ch.truth_errors.items():
+            s[k] = v
+    return PmcalResult(os.path.abspath(folder), method, int(seed), data, fits, ga.best_f, ga.mean_f, warnings,
+                       truth, s)
+
+
+def read_calibration(path) -> tuple:
+    """calibration.json -> (PMModel, dict)."""
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except FileNotFoundError:
+        raise MarkcalError("no such file", path) from None
+    except (OSError, ValueError) as exc:
+        raise MarkcalError(f"cannot read as JSON ({exc})", path) from None
+    try:
+        return model_from_dict(d), d
+    except (KeyError, ValueError, TypeError) as exc:
+        raise MarkcalError(f"not a pmcal calibration (bad or missing {exc})", path) from None
+
+
+def run_command(calibration_path, targets_path, depth_um: float) -> dict:
+    """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv."""
+    if not np.isfinite(depth_um):
+        raise MarkcalError(f"--depth-um must be a finite number (got {depth_um})")
+    model, _ = read_calibration(calibration_path)
+    t = read_table(targets_path, ("x_um", "y_um"))
+    xy = np.column_stack([t["x_um"], t["y_um"]])
+    c = command_for_targets(model, xy, depth_um)
+    return {"x_um": xy[:, 0], "y_um": xy[:, 1], "x_cmd_um": c[:, 0], "y_cmd_um": c[:, 1], "z_cmd_um": c[:, 2]}

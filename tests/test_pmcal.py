@@ -1,0 +1,190 @@
+"""pmcal flow: model, GA, least squares, command generation against the renderer's truth; bad input."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from markcal.fixtures.pm_session import landing_errors, render_pm_session, sample_true_machine, session_data
+from markcal.pipeline.cli import main
+from markcal.reports.files import read_csv, write_csv
+from markcal.stages.pm_fit import fit_lsq, model_from_theta, theta_from_model
+from markcal.stages.pm_ga import GAOptions, run_ga
+from markcal.stages.pm_model import (PMModel, command_for_targets, gram_schmidt, model_from_dict, model_to_dict,
+                                     nonorthogonality_rad, tip_pm)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    out = tmp_path_factory.mktemp("pm") / "s"
+    assert main(["render", "pmcal", "--seed", "7", "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def calibrated(session, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pm") / "o"
+    assert main(["pmcal", str(session), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+def test_triad_projection_is_right_handed_orthonormal():
+    rng = np.random.default_rng(0)
+    q = gram_schmidt(np.eye(3).ravel() + rng.normal(0, 0.05, (20, 9)))
+    assert np.allclose(np.einsum("pji,pjk->pik", q, q), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(q), 1.0)
+
+
+def test_theta_round_trip_and_dict_round_trip():
+    m = sample_true_machine(np.random.default_rng(3))
+    m2 = model_from_theta(theta_from_model(m))
+    c = np.random.default_rng(1).uniform(-25000, 25000, (50, 3))
+    assert np.max(np.abs(tip_pm(m, c) - tip_pm(m2, c))) < 1e-9
+    m3 = model_from_dict(json.loads(json.dumps(model_to_dict(m))))
+    assert np.max(np.abs(tip_pm(m, c) - tip_pm(m3, c))) < 1e-9
+
+
+def test_inverse_is_exact_with_strong_straightness():
+    """Newton inverse lands to < 1 pm even with 5 µm straightness bows; a linear inverse would not."""
+    m = sample_true_machine(np.random.default_rng(5))
+    m = PMModel(m.a_axes, m.scale, np.full(6, 5.0), m.o_um, m.r_pose, m.t_um, m.plane)
+    xy = np.random.default_rng(2).uniform(-20000, 20000, (100, 2))
+    c = command_for_targets(m, xy, 1.0)
+    lat, dep = landing_errors(m, xy, 1.0, c)
+    assert lat.max() < 1e-6 and np.abs(dep).max() < 1e-6
+    c_lin = np.linalg.solve(m.m, ((command_for_targets.__globals__["surface_target_om"](m, xy, 1.0) - m.t_um)
+                                  @ m.r_pose - m.o_um).T).T
+    lat_lin, _ = landing_errors(m, xy, 1.0, c_lin)
+    assert lat_lin.max() > 0.5  # the straightness would be missed by a first-order inverse
+
+
+def test_ga_deterministic_monotone_and_accurate():
+    s = render_pm_session(8)
+    d = session_data(s)
+    a = run_ga(d, GAOptions(seed=3))
+    b = run_ga(d, GAOptions(seed=3))
+    assert np.array_equal(a.theta, b.theta) and np.array_equal(a.best_f, b.best_f)
+    assert len(a.best_f) == 100 and a.n_evals == 60 + 99 * 58
+    assert np.all(np.diff(a.best_f) <= 0)  # elitism
+    assert a.best_f[-1] < 0.2 * a.best_f[0]
+    xy = np.random.default_rng(4).uniform(-20000, 20000, (100, 2))
+    lat, _ = landing_errors(s.model, xy, 0.5, command_for_targets(model_from_theta(a.theta), xy, 0.5))
+    assert np.sqrt(np.mean(lat ** 2)) < 0.05 and lat.max() < 0.10
+
+
+def test_lsq_parameters_within_goals():
+    s = render_pm_session(9)
+    r = fit_lsq(session_data(s))
+    est, tru = model_to_dict(r.model), model_to_dict(s.model)
+    for k in ("nonorth_xy_urad", "nonorth_xz_urad", "nonorth_yz_urad", "plane_tilt_x_urad", "plane_tilt_y_urad"):
+        assert abs(est[k] - tru[k]) < 2.0, k
+    for k in ("scale_x_ppm", "scale_y_ppm", "scale_z_ppm"):
+        assert abs(est[k] - tru[k]) < 5.0, k
+    assert np.linalg.norm(np.subtract(est["rotvec_urad"], tru["rotvec_urad"])) < 10.0
+    # the true machine has ~100 µrad non-orthogonality: the fit must have found it, not ideal axes
+    assert np.max(np.abs(nonorthogonality_rad(s.model.a_axes))) > 2e-5
+
+
+def test_flow_outputs_and_truth(calibrated):
+    s = json.load(open(calibrated / "summary.json"))
+    cal = json.load(open(calibrated / "calibration.json"))
+    for k in ("method", "seed", "scale_x_ppm", "nonorth_xy_urad", "R", "R_angles_urad", "T_um", "plane_a",
+              "plane_b", "plane_c_um", "normal", "E_ortho", "E_pose", "E_flat", "E_dyn", "F"):
+        assert k in cal, k
+    assert cal["method"] == "ga+lsq" and s["method"] == "ga+lsq"
+    assert s["landing_rms_um"] <= 0.05 and s["landing_max_um"] <= 0.10 and s["depth_err_max_um"] <= 0.005
+    assert abs(s["err_nonorth_xy_urad"]) < 2 and abs(s["err_scale_x_ppm"]) < 5 and s["err_pose_rot_urad"] < 10
+    m = read_csv(calibrated / "methods.csv")
+    assert list(m["method"]) == ["ga", "lsq", "ga+lsq"]
+    assert len(read_csv(calibrated / "ga_convergence.csv")["best_F"]) == 100
+    html = open(calibrated / "report.html", encoding="utf-8").read()
+    assert "<img" in html and "http://" not in html and "https://" not in html
+
+
+def test_command_cli_lands_on_true_machine(session, calibrated, tmp_path):
+    truth = model_from_dict(json.load(open(session / "truth.json")))
+    xy = np.random.default_rng(11).uniform(-20000, 20000, (100, 2))
+    write_csv(tmp_path / "targets.csv", {"x_um": xy[:, 0], "y_um": xy[:, 1]})
+    out = tmp_path / "commands.csv"
+    assert main(["pmcal", "command", str(calibrated / "calibration.json"), str(tmp_path / "targets.csv"),
+                 "--depth-um", "0.8", "--out", str(out), "--quiet"]) == 0
+    c = read_csv(out)
+    assert list(c) == ["x_um", "y_um", "x_cmd_um", "y_cmd_um", "z_cmd_um"]
+    lat, dep = landing_errors(truth, xy, 0.8, np.column_stack([c["x_cmd_um"], c["y_cmd_um"], c["z_cmd_um"]]))
+    assert np.sqrt(np.mean(lat ** 2)) <= 0.05 and lat.max() <= 0.10
+    assert np.abs(dep).max() <= 0.005
+
+
+def _bad(capsys, argv):
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("markcal: error: ")
+    return err[0]
+
+
+def _copy(session, tmp_path):
+    d = tmp_path / "s"
+    shutil.copytree(session, d)
+    return d
+
+
+def test_bad_sessions(session, tmp_path, capsys):
+    out = str(tmp_path / "o")
+    d = _copy(session, tmp_path)
+    os.remove(d / "probe.csv")
+    assert "probe.csv" in _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+
+    d = _copy(session, tmp_path / "b")
+    t = read_csv(d / "probe.csv")
+    x = np.linspace(-20000, 20000, len(t["x_um"]))
+    write_csv(d / "probe.csv", {"x_um": x, "y_um": 2 * x + 5, "z_um": t["z_um"]})
+    msg = _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+    assert "probe.csv" in msg and "collinear" in msg
+
+    d = _copy(session, tmp_path / "c")
+    t = read_csv(d / "pose.csv")
+    t["x_om_um"][3], t["x_om_um"][10] = t["x_om_um"][10], t["x_om_um"][3]
+    write_csv(d / "pose.csv", t)
+    msg = _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+    assert "pose.csv" in msg and "mismatched" in msg
+
+    d = _copy(session, tmp_path / "d")
+    text = open(d / "pose.csv").read().splitlines()
+    cells = text[5].split(",")
+    cells[4] = "nan"
+    text[5] = ",".join(cells)
+    open(d / "pose.csv", "w").write("\n".join(text) + "\n")
+    msg = _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+    assert "pose.csv" in msg and "line 6" in msg
+
+    d = _copy(session, tmp_path / "e")
+    t = read_csv(d / "drift.csv")
+    t["t_min"][4] = 100.0
+    write_csv(d / "drift.csv", t)
+    msg = _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+    assert "drift.csv" in msg and "time order" in msg
+
+    d = _copy(session, tmp_path / "f")
+    os.remove(d / "pose.csv")
+    os.mkdir(d / "om")
+    assert "not supported" in _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+
+    assert "no such" in _bad(capsys, ["pmcal", str(tmp_path / "nowhere"), "--out", out, "--quiet"])
+    assert "depth-um" in _bad(capsys, ["pmcal", "command", "a.json", "b.csv", "--out", out, "--quiet"])
+    assert "no such file" in _bad(capsys, ["pmcal", "command", str(tmp_path / "a.json"), "b.csv",
+                                           "--depth-um", "1", "--out", out, "--quiet"])
+
+
+def test_small_probe_grid_warns_but_runs(session, tmp_path):
+    d = _copy(session, tmp_path)
+    t = read_csv(d / "probe.csv")
+    keep = np.isin(t["x_um"], np.unique(t["x_um"])[[0, 2, 4]]) & np.isin(t["y_um"], np.unique(t["y_um"])[[0, 2, 4]])
+    write_csv(d / "probe.csv", {k: np.asarray(v)[keep] for k, v in t.items()})
+    out = tmp_path / "o"
+    assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report", "--quiet"]) == 0
+    s = json.load(open(out / "summary.json"))
+    assert s["n_warnings"] >= 1 and s["n_probe_points"] == 9 and s["method"] == "lsq"
+    assert s["landing_rms_um"] <= 0.05
