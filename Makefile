@@ -45,6 +45,7 @@ bench: sysdeps $(STAMP)
 	$(PY) benchmarks/bench_selfcal.py
 	$(PY) benchmarks/bench_servo.py
 	$(PY) benchmarks/bench_path.py
+	$(PY) benchmarks/bench_pmcal.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) bench_out .pytest_cache
