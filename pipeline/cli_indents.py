@@ -1,0 +1,118 @@
+"""Sub-commands of the indents flow: ``markcal indents`` and ``markcal render afm|om``."""
+from __future__ import annotations
+
+import os
+import sys
+
+from markcal.pipeline.cli import progress
+
+
+def cmd_indents(args) -> int:
+    from markcal.pipeline.flows.indents import IndentsOptions, read_array_spec, run_indents
+    from markcal.reports.indent_outputs import write_indent_outputs
+
+    say = progress(args.quiet)
+    spec = read_array_spec(args.array) if args.array else None
+    opt = IndentsOptions(kind=args.kind, pixel_size_um=args.pixel_size_um)
+    res = run_indents(args.images, spec, opt, progress=say)
+    say("writing tables and report")
+    paths = write_indent_outputs(res, args.out, report=not args.no_report)
+    s = res.summary
+    say(f"{s['n_imprints']} imprints in {s['n_files_ok']} file(s); mean diameter {s['mean_diameter_um']:.3f} µm; "
+        f"{s['n_out_of_tolerance']} out of tolerance, {s['n_low_hd']} with H/D < {s['min_hd']}")
+    for src, msg in res.failed:
+        print(f"markcal: error: {src}: {msg}", file=sys.stderr)
+    print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    return 0
+
+
+def _finish_render(render, out) -> int:
+    """Write array.toml and truth.json beside a render's image; print the folder."""
+    from markcal.fixtures.indent_maps import array_toml
+    from markcal.reports.files import atomic_write_text, write_json
+    t = render.truth
+    atomic_write_text(os.path.join(out, "array.toml"),
+                      array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
+    write_json(os.path.join(out, "truth.json"), t)
+    print(os.path.abspath(out))
+    return 0
+
+
+def cmd_render_afm(args) -> int:
+    from markcal.fixtures.indent_maps import AfmOptions, asylum_ibw, render_afm, tiff_bytes
+    from markcal.reports.files import atomic_write_bytes
+    from markcal.stages.image_io import gsf_bytes
+
+    say = progress(args.quiet)
+    o = AfmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
+                   size_px=args.size_px, field_um=args.field_um, facet_bulge=args.facet_bulge)
+    say(f"rendering AFM map, seed {args.seed}")
+    r = render_afm(args.seed, o)
+    os.makedirs(args.out, exist_ok=True)
+    fmts = {f.strip() for f in args.formats.split(",") if f.strip()}
+    if "tif" in fmts:
+        atomic_write_bytes(os.path.join(args.out, "heights.tif"), tiff_bytes(r.data, r.pixel_um, zunit="nm"))
+    if "gsf" in fmts:
+        ext_m = r.pixel_um * 1e-6 * r.data.shape[1]
+        atomic_write_bytes(os.path.join(args.out, "heights.gsf"),
+                           gsf_bytes(r.data.astype("float64") * 1e-9, ext_m, ext_m, "m", "Height"))
+    if "ibw" in fmts:
+        atomic_write_bytes(os.path.join(args.out, "heights.ibw"), asylum_ibw(r))
+    return _finish_render(r, args.out)
+
+
+def cmd_render_om(args) -> int:
+    from markcal.fixtures.indent_maps import OmOptions, render_om, tiff_bytes
+    from markcal.reports.files import atomic_write_bytes
+
+    say = progress(args.quiet)
+    o = OmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
+                  size_px=args.size_px, pixel_um=args.pixel_um, bits=args.bits)
+    say(f"rendering OM micrograph, seed {args.seed}")
+    r = render_om(args.seed, o)
+    os.makedirs(args.out, exist_ok=True)
+    atomic_write_bytes(os.path.join(args.out, "image.tif"), tiff_bytes(r.data, r.pixel_um))
+    return _finish_render(r, args.out)
+
+
+def _positive(v):
+    import argparse
+    x = float(v)
+    if not x > 0:
+        raise argparse.ArgumentTypeError(f"must be positive, got {v}")
+    return x
+
+
+def register(sub, render_sub) -> None:
+    """Add ``indents`` to the top-level commands and ``afm``, ``om`` to ``render``."""
+    p = sub.add_parser("indents", help="AFM maps / OM images of indentation arrays -> sizes, depths, positions, report")
+    p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM or AFM), .gsf, .gwy, .ibw; one array per file")
+    p.add_argument("--array", help="array spec (ARRAY.toml): rows, cols, pitch_um, nominal_diameter_um")
+    p.add_argument("--kind", choices=["afm", "om"], help="override the kind guessed from the file")
+    p.add_argument("--pixel-size-um", type=_positive, help="pixel size (µm); overrides the file's")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--no-report", action="store_true", help="skip report.html")
+    p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=cmd_indents)
+
+    for what, fn, hlp in (("afm", cmd_render_afm, "AFM height map of a Vickers indentation array"),
+                          ("om", cmd_render_om, "OM micrograph of a Vickers indentation array")):
+        r = render_sub.add_parser(what, help=hlp)
+        r.add_argument("--seed", type=int, default=0)
+        r.add_argument("--out", required=True)
+        r.add_argument("--rows", type=int, default=5)
+        r.add_argument("--cols", type=int, default=5)
+        r.add_argument("--pitch-um", type=_positive, default=8.0)
+        r.add_argument("--nominal-um", type=_positive, default=None,
+                       help="nominal diameter (default: 1, 2 or 3 µm drawn from the seed)")
+        r.add_argument("--size-px", type=int, default=512)
+        if what == "afm":
+            r.add_argument("--field-um", type=_positive, default=50.0)
+            r.add_argument("--formats", default="tif,gsf", help="comma list of tif, gsf, ibw")
+            r.add_argument("--facet-bulge", type=float, default=0.0,
+                           help="convex facets (fraction of the depth), 0: planar")
+        else:
+            r.add_argument("--pixel-um", type=_positive, default=0.1)
+            r.add_argument("--bits", type=int, choices=[8, 16], default=8)
+        r.add_argument("--quiet", action="store_true")
+        r.set_defaults(func=fn)

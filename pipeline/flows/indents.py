@@ -1,0 +1,308 @@
+"""The indents flow: micro-indentation arrays from AFM height maps and OM images.
+
+Paper 000 sec. 4 (Figs. 6-9, Table 1): per imprint centre, corners, diagonals,
+equivalent diameter (circle through the corners), depth, H/D, orientation,
+pile-up; array indexing, rigid registration to the nominal grid, positional
+errors; per-size statistics pooled over all files of a batch.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from markcal.stages import indent as ind
+from markcal.pipeline.config import check_sections, load_toml
+from markcal.stages.errors import MarkcalError
+from markcal.stages.image_io import Image, read_image
+from markcal.stages.level import level_afm
+
+#: QA limits (paper sec. 4): diameter within +-150 nm of nominal, H/D >= 0.04
+TOLERANCE_UM = 0.15
+MIN_HD = 0.04
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What was indented: an R x C array at ``pitch_um`` of one nominal size (ARRAY.toml)."""
+
+    rows: int
+    cols: int
+    pitch_um: float
+    nominal_diameter_um: float
+    indenter: str = "vickers"
+
+
+def read_array_spec(path) -> ArraySpec:
+    """Read ARRAY.toml strictly: unknown sections or keys and bad values are errors."""
+    path = os.fspath(path)
+    d = load_toml(path, "array spec")
+    check_sections(d, {"array": {"rows", "cols", "pitch_um", "nominal_diameter_um"}, "indenter": {"kind"}}, path)
+    a = d.get("array")
+    if a is None:
+        raise MarkcalError("missing section [array]", path)
+    missing = [k for k in ("rows", "cols", "pitch_um", "nominal_diameter_um") if k not in a]
+    if missing:
+        raise MarkcalError(f"missing key(s) {', '.join(missing)} in [array]", path)
+    kind = d.get("indenter", {}).get("kind", "vickers")
+    if kind != "vickers":
+        raise MarkcalError(f"indenter kind '{kind}' is not supported (only \"vickers\")", path)
+    try:
+        if isinstance(a["rows"], bool) or isinstance(a["cols"], bool):
+            raise TypeError("rows and cols must be integers")
+        if int(a["rows"]) != a["rows"] or int(a["cols"]) != a["cols"]:
+            raise ValueError("rows and cols must be integers")
+        spec = ArraySpec(rows=int(a["rows"]), cols=int(a["cols"]), pitch_um=float(a["pitch_um"]),
+                         nominal_diameter_um=float(a["nominal_diameter_um"]), indenter=kind)
+    except (TypeError, ValueError) as exc:
+        raise MarkcalError(f"bad value: {exc}", path) from None
+    if spec.rows < 1 or spec.cols < 1:
+        raise MarkcalError("rows and cols must be at least 1", path)
+    if not (spec.pitch_um > 0 and spec.nominal_diameter_um > 0):
+        raise MarkcalError("pitch_um and nominal_diameter_um must be positive", path)
+    if spec.nominal_diameter_um >= spec.pitch_um and spec.rows * spec.cols > 1:
+        raise MarkcalError("nominal_diameter_um must be smaller than pitch_um", path)
+    return spec
+
+
+@dataclass(frozen=True)
+class IndentsOptions:
+    """Settings of the indents flow."""
+
+    kind: str | None = None                 # "afm" / "om"; None: from the file
+    pixel_size_um: float | None = None      # overrides the file's pixel size
+    tolerance_um: float = TOLERANCE_UM
+    min_hd: float = MIN_HD
+
+
+@dataclass(frozen=True)
+class FileResult:
+    """One image measured.
+
+    ``table`` maps indents.csv column -> array (one entry per imprint);
+    ``imprints`` the stage records (corners for the report); ``image`` the
+    levelled AFM map (nm) or the micrograph divided by its illumination.
+    """
+
+    source: str
+    kind: str
+    pixel_um: float
+    table: dict
+    imprints: list
+    missing_ids: list
+    nominal_um: float
+    nominal_inferred: bool
+    info: dict
+    image: np.ndarray = field(repr=False)
+
+
+@dataclass(frozen=True)
+class IndentsResult:
+    """All files of a run: per-file results, failures, pooled tables and the summary."""
+
+    files: list
+    failed: list                            # (source, message)
+    indents: dict                           # pooled indents.csv columns
+    sizes: dict                             # sizes.csv columns
+    summary: dict
+    spec: ArraySpec | None
+    options: IndentsOptions
+
+
+def run_indents(paths, spec: ArraySpec | None = None, options: IndentsOptions | None = None,
+                progress=None) -> IndentsResult:
+    """Measure the imprints in one or more images and pool the statistics.
+
+    Parameters
+    ----------
+    paths : list of path
+        OM images (TIFF) or AFM maps (TIFF, GSF, GWY, IBW); one array per file.
+    spec : ArraySpec, optional
+        The array every file holds; without it all imprints are measured and
+        no rows, columns or positional errors are given.
+
+    Raises
+    ------
+    MarkcalError
+        When no file could be measured (the first file's problem). A bad file
+        among good ones is listed in ``failed`` instead.
+    """
+    opt = options or IndentsOptions()
+    say = progress or (lambda msg: None)
+    t0 = time.perf_counter()
+    files, failed = [], []
+    for p in paths:
+        say(f"{os.path.basename(str(p))}: reading")
+        try:
+            files.append(measure_file(p, spec, opt, say))
+        except MarkcalError as exc:
+            exc = exc.with_path(p)
+            failed.append((str(p), exc.message))
+            say(f"{os.path.basename(str(p))}: failed: {exc.message}")
+    if not files:
+        src, msg = failed[0]
+        raise MarkcalError(msg, src)
+    indents = {k: np.concatenate([f.table[k] for f in files]) for k in files[0].table}
+    sizes = ind.size_stats(indents["nominal_um"], indents["diameter_um"], indents["hd_ratio"],
+                           indents["depth_nm"])
+    summary = _summary(files, failed, indents, spec, opt, time.perf_counter() - t0)
+    return IndentsResult(files=files, failed=failed, indents=indents, sizes=sizes, summary=summary,
+                         spec=spec, options=opt)
+
+
+def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m: None) -> FileResult:
+    """Read, level (AFM), detect, measure and index the imprints of one image."""
+    t0 = time.perf_counter()
+    img = read_image(path, opt.pixel_size_um, opt.kind)
+    try:
+        return _measure(img, spec, opt, say, t0)
+    except MarkcalError as exc:
+        raise exc.with_path(path) from None
+
+
+def _check_fits(img: Image, spec: ArraySpec):
+    h_um, w_um = (np.array(img.shape) - 1) * img.pixel_um
+    need_w = (spec.cols - 1) * spec.pitch_um + spec.nominal_diameter_um
+    need_h = (spec.rows - 1) * spec.pitch_um + spec.nominal_diameter_um
+    if need_w > w_um or need_h > h_um:
+        raise MarkcalError(f"array spec ({spec.rows} x {spec.cols} at {spec.pitch_um:g} µm, "
+                           f"{need_w:.1f} x {need_h:.1f} µm) does not fit the {w_um:.1f} x {h_um:.1f} µm image")
+    if spec.nominal_diameter_um < 3 * img.pixel_um:
+        raise MarkcalError(f"nominal diameter {spec.nominal_diameter_um:g} µm is under 3 pixels "
+                           f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
+
+
+def _dedupe(imps):
+    keep = []
+    for m in sorted(imps, key=lambda m: -m.n_pixels):
+        if all(np.hypot(m.x_um - k.x_um, m.y_um - k.y_um) > 0.5 * max(m.diameter_um, k.diameter_um)
+               for k in keep):
+            keep.append(m)
+    return keep
+
+
+def _measure(img: Image, spec, opt, say, t0):
+    name = os.path.basename(img.source)
+    if spec is not None:
+        _check_fits(img, spec)
+    px = img.pixel_um
+    info = {"pixel_um": px, "shape": list(img.shape), "format": img.meta.get("format"),
+            "channel": img.meta.get("channel", ""), "pixel_source": img.meta.get("pixel_source")}
+    if img.kind == "afm":
+        say(f"{name}: levelling {img.shape[0]} x {img.shape[1]} AFM map")
+        lv = level_afm(img.data, px)
+        say(f"{name}: detecting and fitting imprints")
+        cands = ind.detect_pits(lv.z_nm, lv.noise_nm, px)
+        imps = [ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars) for r, c, rad in cands]
+        floor = max(5.0, 8 * lv.noise_nm)
+        imps = [m for m in imps if m is not None and m.depth_nm > floor and m.diameter_um > 3 * px]
+        image = lv.z_nm
+        info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
+    else:
+        say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
+        bg = ind.om_background(img.data, px)
+        cands, sig = ind.detect_dots(img.data, px)
+        say(f"{name}: fitting {len(cands)} candidates")
+        imps = [ind.measure_om(img.data, px, r, c, rad, sig, bg) for r, c, rad in cands]
+        imps = [m for m in imps if m is not None and m.diameter_um > 3 * px]
+        if len(imps) >= 3:
+            # one objective blurs every imprint alike: soft blobs (dust out of focus) stand out
+            psf = np.median([m.psf_um for m in imps])
+            imps = [m for m in imps if m.psf_um <= 1.5 * psf]
+        image = img.data / bg
+        info.update(noise_rel=sig)
+    if spec is not None:
+        lo, hi = 0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um
+        imps = [m for m in imps if lo <= m.diameter_um <= hi]
+    imps = _dedupe(imps)
+    if not imps:
+        raise MarkcalError("no imprint found")
+    n = len(imps)
+    xy = np.array([[m.x_um, m.y_um] for m in imps])
+    missing = []
+    if spec is not None:
+        fit = ind.index_array(xy, spec.rows, spec.cols, spec.pitch_um)
+        on = fit.row >= 0
+        n_exp = spec.rows * spec.cols
+        if on.sum() < max(1, n_exp / 2):
+            raise MarkcalError(f"only {int(on.sum())} of {n_exp} imprints of the array spec found")
+        off = n - int(on.sum())
+        if off > max(2, 0.2 * n_exp):
+            raise MarkcalError(f"{n} imprints found but the array spec has {spec.rows} x {spec.cols}: "
+                               "the spec does not match the image")
+        imps = [m for m, o in zip(imps, on) if o]
+        row, col = fit.row[on], fit.col[on]
+        dx, dy = fit.dx_um[on], fit.dy_um[on]
+        ids = row * spec.cols + col
+        order = np.argsort(ids)
+        imps = [imps[i] for i in order]
+        row, col, dx, dy, ids = row[order], col[order], dx[order], dy[order], ids[order]
+        missing = sorted(set(range(n_exp)) - set(ids.tolist()))
+        nominal, inferred = spec.nominal_diameter_um, False
+        info.update(array_rotation_deg=fit.rotation_deg, n_expected=n_exp)
+    else:
+        d_med = np.median([m.diameter_um for m in imps])
+        band = np.round(xy[:, 1] / max(2 * d_med, px))
+        order = np.lexsort((xy[:, 0], band))
+        imps = [imps[i] for i in order]
+        ids = np.arange(n)
+        row = col = np.full(n, -1)
+        dx = dy = np.full(n, np.nan)
+        nominal, inferred = float(max(0.5, np.round(2 * d_med) / 2)), True
+        info.update(n_expected=None)
+    k = len(imps)
+    table = {"id": ids, "row": np.where(row >= 0, row, -1), "col": np.where(col >= 0, col, -1),
+             "x_um": np.array([m.x_um for m in imps]), "y_um": np.array([m.y_um for m in imps]),
+             "dx_um": dx, "dy_um": dy}
+    for f in ("diameter_um", "diag1_um", "diag2_um", "depth_nm", "hd_ratio", "orientation_deg", "pileup_nm"):
+        table[f] = np.array([getattr(m, f) for m in imps])
+    table.update(file=np.array([name] * k, dtype=object), kind=np.array([img.kind] * k, dtype=object),
+                 nominal_um=np.full(k, nominal), fit_rms=np.array([m.fit_rms for m in imps]),
+                 n_pixels=np.array([m.n_pixels for m in imps]))
+    err = np.abs(table["diameter_um"] - nominal)
+    table["in_tolerance"] = ((err <= opt.tolerance_um)
+                             & ~(np.isfinite(table["hd_ratio"]) & (table["hd_ratio"] < opt.min_hd))).astype(int)
+    info["runtime_s"] = time.perf_counter() - t0
+    say(f"{name}: {k} imprints, mean diameter {np.mean(table['diameter_um']):.3f} µm")
+    return FileResult(source=img.source, kind=img.kind, pixel_um=px, table=table, imprints=imps,
+                      missing_ids=missing, nominal_um=nominal, nominal_inferred=inferred, info=info, image=image)
+
+
+def _rms(a):
+    a = np.asarray(a, float)
+    a = a[np.isfinite(a)]
+    return float(np.sqrt(np.mean(a ** 2))) if len(a) else None
+
+
+def _summary(files, failed, t, spec, opt, runtime_s):
+    d = t["diameter_um"]
+    err = d - t["nominal_um"]
+    hd = t["hd_ratio"]
+    n_exp = sum(f.info.get("n_expected") or 0 for f in files) if spec is not None else None
+    out = {
+        "source": files[0].source if len(files) + len(failed) == 1 else f"{len(files) + len(failed)} files",
+        "n_files": len(files) + len(failed), "n_files_ok": len(files), "n_files_failed": len(failed),
+        "failed_files": [f"{os.path.basename(s)}: {m}" for s, m in failed],
+        "kinds": sorted({f.kind for f in files}),
+        "array_spec": bool(spec is not None),
+        "n_imprints": int(len(d)), "n_expected": n_exp,
+        "n_missing": int(sum(len(f.missing_ids) for f in files)) if spec is not None else None,
+        "missing": [f"{os.path.basename(f.source)}#{i}" for f in files for i in f.missing_ids],
+        "mean_diameter_um": float(np.mean(d)), "sd_diameter_um": float(np.std(d, ddof=1)) if len(d) > 1 else None,
+        "max_abs_error_um": float(np.max(np.abs(err))),
+        "mean_depth_nm": float(np.nanmean(t["depth_nm"])) if np.isfinite(t["depth_nm"]).any() else None,
+        "mean_hd": float(np.nanmean(hd)) if np.isfinite(hd).any() else None,
+        "rms_dx_um": _rms(t["dx_um"]), "rms_dy_um": _rms(t["dy_um"]),
+        "max_abs_dx_um": float(np.nanmax(np.abs(t["dx_um"]))) if np.isfinite(t["dx_um"]).any() else None,
+        "max_abs_dy_um": float(np.nanmax(np.abs(t["dy_um"]))) if np.isfinite(t["dy_um"]).any() else None,
+        "tolerance_um": opt.tolerance_um, "min_hd": opt.min_hd,
+        "n_out_of_tolerance": int(np.sum(np.abs(err) > opt.tolerance_um)),
+        "n_low_hd": int(np.sum(np.isfinite(hd) & (hd < opt.min_hd))),
+        "nominal_inferred": any(f.nominal_inferred for f in files),
+        "pixel_um": files[0].pixel_um,
+        "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
+        "runtime_s": runtime_s,
+    }
+    return out

@@ -1,0 +1,221 @@
+"""Self-contained HTML report of an indents flow result (paper 000 Figs. 6-9, Table 1).
+
+Summary first, then warnings (imprints outside +-tolerance or with low H/D,
+failed files), the Table 1 layout, levelled maps, a 3D view of one imprint, a
+profile through one imprint of each size class, the positional errors and a
+gallery of every imprint with its fitted outline. Figures are inline PNG.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+
+__all__ = ["render_indent_report_html"]
+
+DATA_FILES = (
+    ("indents.csv", "one row per imprint: id, row, col, position, dx/dy, diameter, diagonals, depth, H/D, "
+                    "orientation, pile-up, then file, kind, nominal, in_tolerance, fit quality"),
+    ("sizes.csv", "per nominal size: n, mean and σ of diameter and H/D, max |error|, mean depth (paper Table 1)"),
+    ("summary.json", "the summary values of the table above"),
+)
+MAX_GALLERY = 120
+
+
+def _extent(f):
+    ny, nx = f.image.shape
+    return (-0.5 * f.pixel_um, (nx - 0.5) * f.pixel_um, (ny - 0.5) * f.pixel_um, -0.5 * f.pixel_um)
+
+
+def _maps(files):
+    parts = []
+    for f in files[:6]:
+        fig = new_figure(6.2, 5.2)
+        ax = fig.add_subplot(111)
+        if f.kind == "afm":
+            z = f.image
+            lo, hi = np.nanpercentile(z, [0.5, 99.9])
+            im = ax.imshow(z, cmap="afmhot", extent=_extent(f), vmin=lo, vmax=max(hi, lo + 1))
+            fig.colorbar(im, ax=ax, label="height (nm)")
+        else:
+            ax.imshow(f.image, cmap="gray", extent=_extent(f))
+        for m, i in zip(f.imprints, f.table["id"]):
+            c = np.vstack([m.corners_um, m.corners_um[:1]])
+            ax.plot(c[:, 0], c[:, 1], "-", color="cyan", lw=0.8)
+            ax.text(m.x_um, m.y_um - 0.8 * m.diameter_um, str(int(i)), color="cyan", fontsize=6, ha="center")
+        ax.set_xlabel("x (µm)")
+        ax.set_ylabel("y (µm)")
+        what = "levelled AFM height map" if f.kind == "afm" else "micrograph / illumination"
+        parts.append(img(png_b64(fig), f.source, f"<code>{esc(os.path.basename(f.source))}</code>: {what} with "
+                         "the fitted outlines (corners from the facet planes) and imprint ids."))
+    return "".join(parts)
+
+
+def _crop(f, m, k=1.4):
+    px = f.pixel_um
+    r = max(m.diameter_um * k / px, 6)
+    ci, ri = m.x_um / px, m.y_um / px
+    r0, r1 = max(0, int(ri - r)), min(f.image.shape[0], int(ri + r) + 1)
+    c0, c1 = max(0, int(ci - r)), min(f.image.shape[1], int(ci + r) + 1)
+    return f.image[r0:r1, c0:c1], (c0 * px - px / 2, (c1 - 0.5) * px, (r1 - 0.5) * px, r0 * px - px / 2), (r0, c0)
+
+
+def _render3d(files):
+    afm = [f for f in files if f.kind == "afm" and f.imprints]
+    if not afm:
+        return ""
+    f = afm[0]
+    m = f.imprints[len(f.imprints) // 2]
+    z, ext, (r0, c0) = _crop(f, m, 1.6)
+    ny, nx = z.shape
+    xx, yy = np.meshgrid(c0 * f.pixel_um + np.arange(nx) * f.pixel_um, r0 * f.pixel_um + np.arange(ny) * f.pixel_um)
+    fig = new_figure(6.5, 4.8)
+    ax = fig.add_subplot(111, projection="3d")
+    ax.plot_surface(xx, yy, np.nan_to_num(z), cmap="afmhot", linewidth=0, antialiased=True)
+    ax.set_xlabel("x (µm)")
+    ax.set_ylabel("y (µm)")
+    ax.set_zlabel("z (nm)")
+    ax.view_init(elev=35, azim=-60)
+    return img(png_b64(fig), "3D imprint", f"3D view of imprint {int(f.table['id'][len(f.imprints) // 2])} of "
+               f"<code>{esc(os.path.basename(f.source))}</code>: diameter {num(m.diameter_um, 'µm')}, depth "
+               f"{num(m.depth_nm, 'nm')} (paper Fig. 6c).")
+
+
+def _profiles(files):
+    afm = [f for f in files if f.kind == "afm" and f.imprints]
+    if not afm:
+        return ""
+    by_size = {}
+    for f in afm:
+        by_size.setdefault(f.nominal_um, (f, f.imprints[len(f.imprints) // 2]))
+    fig = new_figure(7.5, 3.6)
+    ax = fig.add_subplot(111)
+    for nominal, (f, m) in sorted(by_size.items()):
+        # profile along diagonal 1 through the centre, bilinear samples
+        from scipy import ndimage
+        ang = np.radians(m.orientation_deg)
+        s = np.linspace(-1.5 * m.diameter_um, 1.5 * m.diameter_um, 241)
+        x = (m.x_um + s * np.cos(ang)) / f.pixel_um
+        y = (m.y_um + s * np.sin(ang)) / f.pixel_um
+        z = ndimage.map_coordinates(np.nan_to_num(f.image), [y, x], order=1, mode="nearest")
+        ax.plot(s, z, label=f"{nominal:g} µm (measured {m.diameter_um:.3f} µm, {m.depth_nm:.1f} nm)")
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel("distance along diagonal 1 (µm)")
+    ax.set_ylabel("height (nm)")
+    ax.legend(fontsize=8)
+    return img(png_b64(fig), "profiles", "Height profile along diagonal 1 through one imprint of each size class "
+               "(paper Fig. 7b); 0 is the original surface.")
+
+
+def _positions(res):
+    t = res.indents
+    ok = np.isfinite(t["dx_um"])
+    if not ok.any():
+        return "<p>No array spec: no positional errors (give <code>--array ARRAY.toml</code>).</p>"
+    fig = new_figure(8.5, 3.4)
+    ax = fig.add_subplot(121)
+    k = np.arange(ok.sum())
+    ax.plot(k, 1000 * t["dx_um"][ok], "o-", ms=3, label="dx")
+    ax.plot(k, 1000 * t["dy_um"][ok], "s-", ms=3, label="dy")
+    ax.axhline(100, color="r", lw=0.6, ls="--")
+    ax.axhline(-100, color="r", lw=0.6, ls="--")
+    ax.set_xlabel("imprint (file order)")
+    ax.set_ylabel("error (nm)")
+    ax.legend(fontsize=8)
+    ax2 = fig.add_subplot(122)
+    ax2.scatter(1000 * t["dx_um"][ok], 1000 * t["dy_um"][ok], s=10)
+    ax2.add_patch(__import__("matplotlib.patches", fromlist=["Circle"]).Circle((0, 0), 100, fill=False, color="r",
+                                                                               ls="--", lw=0.6))
+    ax2.set_aspect("equal", "datalim")
+    ax2.set_xlabel("dx (nm)")
+    ax2.set_ylabel("dy (nm)")
+    return img(png_b64(fig), "positional errors",
+               "Positional errors after rigid registration of each array to its nominal grid: registered measured "
+               "minus nominal (paper Fig. 9); dashed: ±100 nm.")
+
+
+def _gallery(files):
+    items = [(f, m, i) for f in files for m, i in zip(f.imprints, f.table["id"])][:MAX_GALLERY]
+    if not items:
+        return ""
+    ncol = 10
+    nrow = int(np.ceil(len(items) / ncol))
+    fig = new_figure(11, 1.15 * nrow + 0.3)
+    for j, (f, m, i) in enumerate(items):
+        ax = fig.add_subplot(nrow, ncol, j + 1)
+        z, ext, _ = _crop(f, m)
+        ax.imshow(z, cmap="afmhot" if f.kind == "afm" else "gray", extent=ext)
+        c = np.vstack([m.corners_um, m.corners_um[:1]])
+        ax.plot(c[:, 0], c[:, 1], "-", color="cyan", lw=0.7)
+        th = np.linspace(0, 2 * np.pi, 60)
+        ax.plot(m.x_um + m.diameter_um / 2 * np.cos(th), m.y_um + m.diameter_um / 2 * np.sin(th), "--",
+                color="lime", lw=0.5)
+        ax.set_xlim(ext[0], ext[1])
+        ax.set_ylim(ext[2], ext[3])
+        ax.set_xticks([])
+        ax.set_yticks([])
+        ax.set_title(f"{int(i)}: {m.diameter_um:.2f}", fontsize=6)
+    more = sum(len(f.imprints) for f in files) - len(items)
+    cap = ("Every imprint with its fitted outline (cyan: corners joined; green dashed: circle through the corners, "
+           "paper Fig. 6b); title: id and diameter (µm).") + (f" {more} more not shown." if more > 0 else "")
+    return img(png_b64(fig), "gallery", cap)
+
+
+def render_indent_report_html(res) -> str:
+    """The whole report page of an :class:`IndentsResult`."""
+    s = res.summary
+    t = res.indents
+    parts = []
+    verdict = (f"{s['n_imprints']} imprints in {s['n_files_ok']} of {s['n_files']} file(s); mean diameter "
+               f"{num(s['mean_diameter_um'], 'µm')}; {s['n_out_of_tolerance']} outside "
+               f"±{s['tolerance_um'] * 1000:.0f} nm, "
+               f"{s['n_low_hd']} with H/D &lt; {s['min_hd']}.")
+    parts.append(f'<div class="verdict">{verdict}</div>')
+    rows = [("files measured / failed", f"{s['n_files_ok']} / {s['n_files_failed']}"),
+            ("kinds", esc(", ".join(s["kinds"]))),
+            ("imprints found", num(s["n_imprints"], "")),
+            ("expected (array spec)", num(s["n_expected"], "") if s["n_expected"] is not None else "– (no spec)"),
+            ("missing", esc(", ".join(s["missing"])) or "none"),
+            ("mean / σ diameter", f"{num(s['mean_diameter_um'], 'µm')} / {num(s['sd_diameter_um'], 'µm')}"),
+            ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm")),
+            ("mean depth", num(s["mean_depth_nm"], "nm")), ("mean H/D", num(s["mean_hd"], "")),
+            ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
+            ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
+            ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
+    parts.append(table(["quantity", "value"], rows))
+    if s["nominal_inferred"]:
+        parts.append('<div class="warn">No array spec: the nominal size of each file is its median diameter '
+                     "rounded to 0.5 µm.</div>")
+    for src, msg in res.failed:
+        parts.append(f'<div class="note">failed: <code>{esc(os.path.basename(src))}</code>: {esc(msg)}</div>')
+    err = t["diameter_um"] - t["nominal_um"]
+    low = np.isfinite(t["hd_ratio"]) & (t["hd_ratio"] < s["min_hd"])
+    bad = np.flatnonzero((np.abs(err) > s["tolerance_um"]) | low)
+    if len(bad):
+        items = "".join(f"<li><code>{esc(t['file'][i])}</code> #{int(t['id'][i])}: diameter "
+                        f"{num(t['diameter_um'][i], 'µm')} (nominal {num(t['nominal_um'][i], 'µm')}, error "
+                        f"{1000 * err[i]:+.0f} nm), H/D {num(t['hd_ratio'][i], '')}</li>" for i in bad[:50])
+        parts.append(f'<div class="warn"><b>{len(bad)} imprint(s) outside the tolerance '
+                     f'±{s["tolerance_um"] * 1000:.0f} nm '
+                     f"or with H/D &lt; {s['min_hd']}</b><ul>{items}</ul></div>")
+    parts.append("<h2>Per-size statistics (paper Table 1)</h2>")
+    z = res.sizes
+    parts.append(table(["nominal size", "N", "mean diameter", "σ diameter", "max |error|", "mean H/D", "σ H/D",
+                        "mean depth"],
+                       [[num(z["nominal_um"][i], "µm"), num(z["n"][i], ""), num(z["mean_diameter_um"][i], "µm"),
+                         num(z["sd_diameter_um"][i], "µm"), num(z["max_abs_error_um"][i], "µm"),
+                         num(z["mean_hd"][i], ""), num(z["sd_hd"][i], ""), num(z["mean_depth_nm"][i], "nm")]
+                        for i in range(len(z["n"]))]))
+    parts.append("<h2>Maps</h2>")
+    parts.append(_maps(res.files))
+    parts.append("<h2>One imprint in 3D and profiles</h2>")
+    parts.append(_render3d(res.files))
+    parts.append(_profiles(res.files))
+    parts.append("<h2>Positional error</h2>")
+    parts.append(_positions(res))
+    parts.append("<h2>Every imprint</h2>")
+    parts.append(_gallery(res.files))
+    parts.append(data_files_footer(DATA_FILES))
+    return page("markcal indents report", parts, source=s["source"])

@@ -1,0 +1,276 @@
+"""Indents flow: readers, levelling, AFM and OM measurement against renderer truth, CLI, bad input.
+
+Small renders (3 x 3 arrays, 256 x 256 px) keep this file fast; the tolerances are the
+issue's goals (AFM: diameter RMS <= 20 nm, depth RMS <= 2 nm, centre RMS <= 15 nm;
+OM: centre RMS <= 20 nm, diameter within +-0.1 µm). Seeds here are 1-40; the
+benchmark sweep uses 1000+.
+"""
+import json
+import os
+
+import numpy as np
+import pytest
+
+from markcal.fixtures.indent_maps import (AfmOptions, OmOptions, array_toml, asylum_ibw, render_afm, render_om,
+                                          tiff_bytes)
+from markcal.pipeline.cli import main
+from markcal.pipeline.flows.indents import read_array_spec, run_indents
+from markcal.stages.errors import MarkcalError
+from markcal.stages.image_io import gsf_bytes, read_image
+from markcal.stages.level import level_afm
+
+SMALL_AFM = dict(rows=3, cols=3, pitch_um=8.0, size_px=256, field_um=25.0)   # 98 nm pixels as the issue's 50 µm / 512
+
+
+def _write(folder, r, fmt="tif"):
+    os.makedirs(folder, exist_ok=True)
+    t = r.truth
+    spec = os.path.join(folder, "array.toml")
+    with open(spec, "w") as fh:
+        fh.write(array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
+    path = os.path.join(folder, f"map.{fmt}")
+    if fmt == "tif":
+        data = tiff_bytes(r.data, r.pixel_um, zunit="nm" if r.kind == "afm" else None)
+    elif fmt == "gsf":
+        ext = r.pixel_um * 1e-6 * r.data.shape[1]
+        data = gsf_bytes(r.data.astype(float) * 1e-9, ext, ext)
+    else:
+        data = asylum_ibw(r)
+    with open(path, "wb") as fh:
+        fh.write(data)
+    return path, spec
+
+
+def _match(table, truth):
+    txy = np.array([[i["x_um"], i["y_um"]] for i in truth["imprints"]])
+    out = []
+    for k in range(len(table["x_um"])):
+        d = np.hypot(txy[:, 0] - table["x_um"][k], txy[:, 1] - table["y_um"][k])
+        out.append(int(np.argmin(d)))
+    return [truth["imprints"][j] for j in out]
+
+
+def _rms(a):
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+@pytest.fixture(scope="module")
+def afm_pair(tmp_path_factory):
+    """Two small AFM maps (1 µm and 2 µm marks, tilt, bow, offsets, scars, dust)."""
+    folder = str(tmp_path_factory.mktemp("afm"))
+    out = []
+    for seed, nominal in ((11, 1.0), (12, 2.0)):
+        r = render_afm(seed, AfmOptions(nominal_um=nominal, **SMALL_AFM))
+        out.append((r, *_write(os.path.join(folder, str(seed)), r)))
+    return out
+
+
+def test_afm_accuracy_against_truth(afm_pair):
+    for r, path, spec_path in afm_pair:
+        res = run_indents([path], read_array_spec(spec_path))
+        t = res.indents
+        truth = r.truth
+        assert len(t["id"]) == 9 and res.summary["n_missing"] == 0          # every imprint, no false ones
+        tr = _match(t, truth)
+        assert sorted(int(i["row"]) * 3 + int(i["col"]) for i in tr) == list(range(9))
+        assert np.all(t["id"] == [i["row"] * 3 + i["col"] for i in tr])   # indexing matches truth
+        dd = t["diameter_um"] - [i["diameter_um"] for i in tr]
+        dz = t["depth_nm"] - [i["depth_nm"] for i in tr]
+        dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
+        assert _rms(dd) <= 0.020, dd
+        assert _rms(dz) <= 2.0, dz
+        assert _rms(dc) <= 0.015, dc
+        assert np.all(np.abs(t["hd_ratio"] - [i["hd_ratio"] for i in tr]) < 0.004)
+        do = (t["orientation_deg"] - [i["orientation_deg"] for i in tr] + 45) % 90 - 45
+        assert np.all(np.abs(do) < 2.0)
+        # positional errors: truth scatter after the same rigid registration, within 15 nm
+        from markcal.stages.register import rigid_fit
+        nom = np.array([[(i["col"] - 1) * 8.0, (i["row"] - 1) * 8.0] for i in tr])
+        txy = np.array([[i["x_um"], i["y_um"]] for i in tr])
+        tf = rigid_fit(txy, nom)
+        true_d = tf.apply(txy) - nom
+        assert np.max(np.abs(t["dx_um"] - true_d[:, 0])) < 0.02
+        assert np.max(np.abs(t["dy_um"] - true_d[:, 1])) < 0.02
+
+
+def test_levelling_removes_tilt_bow_offsets():
+    r = render_afm(22, AfmOptions(nominal_um=2.0, max_tilt_deg=1.0, bow_nm=40, line_offset_nm=5, **SMALL_AFM))
+    assert r.truth["tilt_deg"] > 0.1
+    lv = level_afm(r.data.astype(float), r.pixel_um)
+    bg = ~lv.mask
+    raw_sd = np.std(r.data[bg])
+    assert raw_sd > 20
+    assert np.std(lv.z_nm[bg]) < 2.0 * r.truth["noise_nm"] + 0.3          # flat to about the noise
+    assert abs(lv.noise_nm - r.truth["noise_nm"]) < 0.3 * r.truth["noise_nm"] + 0.1
+    assert abs(lv.tilt_deg - r.truth["tilt_deg"]) < 0.1
+
+
+def test_readers_agree_tif_gsf_ibw_gwy(tmp_path):
+    from gwyfile.objects import GwyContainer, GwyDataField
+    r = render_afm(5, AfmOptions(rows=1, cols=1, size_px=128, field_um=6.0, nominal_um=1.0))
+    a = read_image(_write(str(tmp_path / "t"), r, "tif")[0])
+    b = read_image(_write(str(tmp_path / "g"), r, "gsf")[0])
+    c = read_image(_write(str(tmp_path / "i"), r, "ibw")[0])
+    obj = GwyContainer()
+    obj["/0/data/title"] = "Height"
+    obj["/0/data"] = GwyDataField(r.data.astype(float) * 1e-9, xreal=6e-6, yreal=6e-6, si_unit_xy="m",
+                                  si_unit_z="m")
+    gpath = str(tmp_path / "m.gwy")
+    obj.tofile(gpath)
+    d = read_image(gpath)
+    for im in (a, b, c, d):
+        assert im.kind == "afm"
+        assert im.pixel_um == pytest.approx(6.0 / 128, rel=1e-6)
+        assert np.allclose(im.data, r.data, atol=1e-3)                     # nm everywhere
+    assert c.meta["channel"] == "HeightRetrace" and "AmplitudeRetrace" in c.meta["layers"]
+    assert c.meta["scan_size_um"] == pytest.approx(6.0)
+    # override and OME / plain resolution tags
+    assert read_image(_write(str(tmp_path / "t2"), r, "tif")[0], pixel_size_um=0.5).pixel_um == 0.5
+    import tifffile
+    p = str(tmp_path / "ome.tif")
+    tifffile.imwrite(p, r.data, ome=True, metadata={"PhysicalSizeX": 0.05, "PhysicalSizeXUnit": "µm"})
+    assert read_image(p).pixel_um == pytest.approx(0.05)
+    p = str(tmp_path / "cm.tif")
+    tifffile.imwrite(p, (r.data - r.data.min()).astype(np.uint16), resolution=(1e4 / 0.2, 1e4 / 0.2),
+                     resolutionunit="CENTIMETER")
+    im = read_image(p)
+    assert im.kind == "om" and im.pixel_um == pytest.approx(0.2)
+
+
+def test_ibw_single_imprint_cli_no_options(tmp_path):
+    """An Asylum-style .ibw of one imprint: read, levelled and measured with only the file name."""
+    r = render_afm(7, AfmOptions(rows=1, cols=1, size_px=256, field_um=10.0, nominal_um=1.0))
+    path = str(tmp_path / "single.ibw")
+    with open(path, "wb") as fh:
+        fh.write(asylum_ibw(r))
+    out = str(tmp_path / "out")
+    assert main(["indents", path, "--out", out, "--quiet"]) == 0
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["n_imprints"] == 1
+    from markcal.reports.files import read_csv
+    t = read_csv(os.path.join(out, "indents.csv"))
+    tr = r.truth["imprints"][0]
+    assert abs(t["diameter_um"][0] - tr["diameter_um"]) < 0.02
+    assert abs(t["depth_nm"][0] - tr["depth_nm"]) < 2.0
+    assert np.isnan(t["row"][0]) and np.isnan(t["dx_um"][0])              # no spec: empty row/col/dx/dy
+
+
+def test_om_accuracy_against_truth(tmp_path):
+    r = render_om(31, OmOptions(rows=2, cols=3, pitch_um=8.0, size_px=224, nominal_um=2.0, bits=16))
+    path, spec = _write(str(tmp_path), r)
+    res = run_indents([path], read_array_spec(spec))
+    t = res.indents
+    assert len(t["id"]) == 6 and res.summary["n_missing"] == 0
+    tr = _match(t, r.truth)
+    dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
+    assert _rms(dc) <= 0.020
+    assert np.all(np.abs(t["diameter_um"] - [i["diameter_um"] for i in tr]) <= 0.1)
+    assert np.all(np.isnan(t["depth_nm"]))
+
+
+def test_cli_render_and_pooled_run_without_spec(tmp_path, capsys):
+    a, b = str(tmp_path / "a"), str(tmp_path / "b")
+    for d, seed in ((a, 1), (b, 2)):
+        assert main(["render", "afm", "--seed", str(seed), "--out", d, "--rows", "2", "--cols", "2", "--size-px",
+                     "192", "--field-um", "18.75", "--nominal-um", "2", "--quiet"]) == 0
+    assert sorted(os.listdir(a)) == ["array.toml", "heights.gsf", "heights.tif", "truth.json"]
+    out = str(tmp_path / "out")
+    assert main(["indents", os.path.join(a, "heights.tif"), os.path.join(b, "heights.gsf"), "--out", out,
+                 "--quiet"]) == 0
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["n_imprints"] == 8 and s["n_files_ok"] == 2 and s["nominal_inferred"]
+    from markcal.reports.files import read_csv
+    z = read_csv(os.path.join(out, "sizes.csv"))
+    assert list(z) == ["nominal_um", "n", "mean_diameter_um", "sd_diameter_um", "max_abs_error_um", "mean_hd",
+                       "sd_hd", "mean_depth_nm"]
+    assert z["n"].tolist() == [8.0] and z["nominal_um"].tolist() == [2.0]
+    with open(os.path.join(out, "indents.csv")) as fh:
+        assert fh.readline().startswith("id,row,col,x_um,y_um,dx_um,dy_um,diameter_um,diag1_um,diag2_um,"
+                                        "depth_nm,hd_ratio,orientation_deg,pileup_nm")
+    html = open(os.path.join(out, "report.html")).read()
+    assert "Table 1" in html and "http" not in html.replace("http-equiv", "")
+
+
+# ----------------------------------------------------------------------------- bad input
+
+def _err(capsys, argv):
+    rc = main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    return rc, err[-1] if err else ""
+
+
+@pytest.fixture(scope="module")
+def good_map(tmp_path_factory):
+    folder = str(tmp_path_factory.mktemp("good"))
+    r = render_afm(3, AfmOptions(rows=2, cols=2, size_px=192, field_um=18.75, nominal_um=2.0))
+    return _write(folder, r)
+
+
+def test_bad_inputs_one_line_exit_1(tmp_path, capsys, good_map):
+    import tifffile
+    out = str(tmp_path / "out")
+    txt = str(tmp_path / "notes.tif")
+    with open(txt, "w") as fh:
+        fh.write("this is not an image\n")
+    nopx = str(tmp_path / "nopx.tif")
+    tifffile.imwrite(nopx, np.random.default_rng(0).normal(size=(64, 64)).astype(np.float32))
+    nan = str(tmp_path / "nan.gsf")
+    with open(nan, "wb") as fh:
+        fh.write(gsf_bytes(np.full((64, 64), np.nan), 1e-5, 1e-5))
+    const = str(tmp_path / "const.gsf")
+    with open(const, "wb") as fh:
+        fh.write(gsf_bytes(np.full((64, 64), 1e-9), 1e-5, 1e-5))
+    flat = str(tmp_path / "flat.gsf")
+    with open(flat, "wb") as fh:
+        fh.write(gsf_bytes(np.random.default_rng(1).normal(0, 3e-10, (128, 128)), 1e-5, 1e-5))
+    big = str(tmp_path / "big.toml")
+    with open(big, "w") as fh:
+        fh.write(array_toml(9, 9, 8.0, 2.0))
+    typo = str(tmp_path / "typo.toml")
+    with open(typo, "w") as fh:
+        fh.write("[array]\nrows = 2\ncols = 2\npitch = 8.0\nnominal_diameter_um = 2.0\n")
+    cases = [([txt], "not a readable TIF image"), ([nopx], "no pixel size"), ([nan], "all NaN"),
+             ([const], "constant"), ([flat], "no imprint found"),
+             ([good_map[0], "--array", big], "does not fit"), ([good_map[0], "--array", typo], "unknown key 'pitch'"),
+             ([str(tmp_path / "missing.tif")], "no such file")]
+    for args, msg in cases:
+        rc, line = _err(capsys, ["indents", *args, "--out", out, "--quiet"])
+        assert rc == 1, args
+        assert line.startswith("markcal: error: ") and msg in line, line
+        assert not os.path.exists(os.path.join(out, "summary.json"))
+        assert not os.path.exists(os.path.join(out, "report.html"))
+    # no pixel size, but given on the command line: fine up to "no imprint found"
+    rc, line = _err(capsys, ["indents", nopx, "--pixel-size-um", "0.1", "--out", out, "--quiet"])
+    assert rc == 1 and "no imprint found" in line
+
+
+def test_one_bad_file_fails_alone(tmp_path, capsys, good_map):
+    bad = str(tmp_path / "bad.gsf")
+    with open(bad, "wb") as fh:
+        fh.write(b"Gwyddion Simple Field 1.0\nXRes = 10\n")
+    out = str(tmp_path / "out")
+    rc = main(["indents", good_map[0], bad, "--array", good_map[1], "--out", out, "--quiet"])
+    assert rc == 0
+    err = capsys.readouterr().err
+    assert "bad.gsf" in err
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["n_files_ok"] == 1 and s["n_files_failed"] == 1 and "bad.gsf" in s["failed_files"][0]
+    assert s["n_imprints"] == 4
+    assert "bad.gsf" in open(os.path.join(out, "report.html")).read()
+
+
+def test_array_spec_strict(tmp_path):
+    p = str(tmp_path / "a.toml")
+    for text, msg in (("[array]\nrows = 2\ncols = 2\npitch_um = 8.0\n", "missing key"),
+                      ("[array]\nrows = 2.5\ncols = 2\npitch_um = 8.0\nnominal_diameter_um = 2\n", "integers"),
+                      ("[array]\nrows = 2\ncols = 2\npitch_um = 8.0\nnominal_diameter_um = 2\n[indenter]\n"
+                       "kind = \"berkovich\"\n", "not supported"),
+                      ("[grid]\nrows = 2\n", "unknown section")):
+        with open(p, "w") as fh:
+            fh.write(text)
+        with pytest.raises(MarkcalError, match=msg):
+            read_array_spec(p)
+    with open(p, "w") as fh:
+        fh.write(array_toml(5, 4, 8.0, 3.0))
+    s = read_array_spec(p)
+    assert (s.rows, s.cols, s.pitch_um, s.nominal_diameter_um) == (5, 4, 8.0, 3.0)
