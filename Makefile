@@ -46,6 +46,7 @@ bench: sysdeps $(STAMP)
 	$(PY) benchmarks/bench_servo.py
 	$(PY) benchmarks/bench_path.py
 	$(PY) benchmarks/bench_pmcal.py
+	$(PY) benchmarks/bench_indents.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) bench_out .pytest_cache
