@@ -43,6 +43,7 @@ bench: sysdeps $(STAMP)
 	$(PY) benchmarks/bench_scan.py
 	$(PY) benchmarks/accuracy_sweep.py
 	$(PY) benchmarks/bench_selfcal.py
+	$(PY) benchmarks/bench_export.py
 	$(PY) benchmarks/bench_servo.py
 	$(PY) benchmarks/bench_path.py
 	$(PY) benchmarks/bench_pmcal.py

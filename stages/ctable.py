@@ -39,7 +39,7 @@ def centred_nodes(n_nodes: int, spacing: float, units_per_mm: float) -> np.ndarr
 
 
 def sample_onto_nodes(offset_mm, x_nodes_mm: np.ndarray, y_nodes_mm: np.ndarray, region_mm: tuple,
-                      max_extrapolated_fraction: float = 0.5) -> Sampled:
+                      max_extrapolated_fraction: float = 0.5, margin_mm: float | None = None) -> Sampled:
     """Evaluate a correction at every node of a table.
 
     Parameters
@@ -50,10 +50,15 @@ def sample_onto_nodes(offset_mm, x_nodes_mm: np.ndarray, y_nodes_mm: np.ndarray,
         Node positions along x and y (mm).
     region_mm : tuple
         ``(x_min, x_max, y_min, y_max)`` where the correction was measured.
-        Nodes outside it take the value at the nearest point of the region
-        (constant extrapolation: a network is not trusted outside its data).
+        Nodes outside it take the value at the nearest point of the region grown
+        by ``margin_mm`` (constant extrapolation: a network is not trusted far
+        outside its data).
     max_extrapolated_fraction : float
         Refuse when more of the table than this lies outside the measured region.
+    margin_mm : float, optional
+        How far outside the region the correction itself is still evaluated, so
+        that the cells straddling the region's edge interpolate it faithfully;
+        default one node spacing.
 
     Returns
     -------
@@ -71,7 +76,9 @@ def sample_onto_nodes(offset_mm, x_nodes_mm: np.ndarray, y_nodes_mm: np.ndarray,
             f"the table's field ({x_nodes_mm[0]:.1f}..{x_nodes_mm[-1]:.1f} mm) is much larger than the measured "
             f"region ({lo[0]:.1f}..{hi[0]:.1f} x {lo[1]:.1f}..{hi[1]:.1f} mm): {frac:.0%} of the nodes would be "
             "extrapolated (check the lens field size, or allow extrapolation)")
-    d = np.asarray(offset_mm(np.clip(xy, lo, hi)), float)
+    if margin_mm is None:
+        margin_mm = float(max(np.max(np.diff(x_nodes_mm)), np.max(np.diff(y_nodes_mm))))
+    d = np.asarray(offset_mm(np.clip(xy, lo - margin_mm, hi + margin_mm)), float)
     shape = gx.shape
     return Sampled(GridCorrection(np.asarray(x_nodes_mm, float), np.asarray(y_nodes_mm, float),
                                   d[:, 0].reshape(shape), d[:, 1].reshape(shape)), int(outside.sum()))
