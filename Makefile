@@ -26,14 +26,16 @@ $(STAMP): pyproject.toml | sysdeps
 	$(PY) -m pip install -q -e '.[test]'
 	@touch $(STAMP)
 
+# A small mixed batch (plates, self-calibration sessions, servo traces, an AFM map, a micrograph and
+# one broken file on purpose) through `markcal batch`. Exit status 3 means "some inputs failed to
+# process", which the broken file causes by design; any other failure stops make.
 demo: sysdeps $(STAMP)
-	$(VENV)/bin/markcal render scan --seed 7 --out $(DEMO)/plate
-	$(VENV)/bin/markcal scan $(DEMO)/plate/cloud.ply --plate $(DEMO)/plate/plate.toml --out $(DEMO)/calibration
-	$(VENV)/bin/markcal render scan --seed 8 --machine-seed 7 --correction $(DEMO)/calibration/correction_grid.csv --out $(DEMO)/validation_plate
-	$(VENV)/bin/markcal scan $(DEMO)/validation_plate/cloud.ply --plate $(DEMO)/validation_plate/plate.toml --out $(DEMO)/validation --validation
+	rm -rf $(DEMO)
+	$(VENV)/bin/markcal render batch --seed 7 --out $(DEMO)/inputs --scans 3 --sessions 2 --traces 3 --maps 1 --micrographs 1 --broken 1
+	$(VENV)/bin/markcal batch $(DEMO)/inputs --out $(DEMO)/batch --workers 2; rc=$$?; \
+	  if [ $$rc -ne 0 ] && [ $$rc -ne 3 ]; then exit $$rc; fi
 	@echo ""
-	@echo "calibration report: $$(pwd)/$(DEMO)/calibration/report.html"
-	@echo "validation report:  $$(pwd)/$(DEMO)/validation/report.html"
+	@echo "batch index: $$(pwd)/$(DEMO)/batch/index.html"
 
 test: sysdeps $(STAMP)
 	$(PY) -m pytest
@@ -48,6 +50,7 @@ bench: sysdeps $(STAMP)
 	$(PY) benchmarks/bench_path.py
 	$(PY) benchmarks/bench_pmcal.py
 	$(PY) benchmarks/bench_indents.py
+	$(PY) benchmarks/bench_batch.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) bench_out .pytest_cache
