@@ -28,20 +28,22 @@ __all__ = ["METHODS", "paper_filter", "hold_last", "kalman_cv", "kalman_bank", "
 
 #: compensation methods: name -> one-line description
 METHODS = {
-    "kalman": "bank of constant-velocity and local-level Kalman filters and hold-last, the member with the smallest past one-step "
-              "prediction error chosen at each sample, predicting to the middle of the next interval",
+    "kalman": "Bayesian model average of local-level and damped-trend (thermal approach) Kalman filters weighted by their "
+              "past predictive likelihood, predicting the mean level over the next interval",
     "paper": "the paper's eq. 10 as its text describes it: exponential smoothing with memory α = 0.8",
     "paper-literal": "eq. 10 as printed: α = 0.8 on the new sample",
     "hold": "hold the last measurement",
     "trend": "one constant-velocity Kalman filter (fixed process noise) predicting to mid-interval",
 }
 
-#: process-noise densities (µm²/min³) of the Kalman bank; 0 is a pure straight-line trend
-Q_BANK = (0.0, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4)
-#: a bank member replaces hold-last only when its score is at most this fraction of hold-last's
-MARGIN = 0.5
-#: process-noise densities (µm²/min) of the bank's local-level (random-walk) members
-LEVEL_Q_BANK = (1e-6, 1e-5, 1e-4, 1e-3)
+#: local-level (random-walk) members of the model average: level process-noise densities, µm²/min
+LEVEL_Q = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 1e-3)
+#: damped-trend members (a thermal approach): level noise densities, µm²/min
+TREND_QL = (1e-6, 1e-5, 1e-4)
+#: damped-trend members: velocity noise density, µm²/min³, velocity damping time, min, and prior velocity σ, µm/min
+TREND_QV, TREND_TAU_MIN, TREND_V0_UM_MIN = 1e-8, 50.0, 0.01
+#: log prior odds (nats) of each damped-trend member against a level member (Occam penalty for the extra state)
+TREND_PENALTY = 3.0
 
 
 def paper_filter(meas_um: np.ndarray, alpha: float = 0.8, c_ga_um=0.0, memory: bool = False) -> np.ndarray:
@@ -80,20 +82,6 @@ def _kf_run(t, m, q, r):
     return pos, vel
 
 
-def _kf_level(t, m, q, r):
-    """Local-level (random-walk) Kalman filter on one axis; returns the level estimate at each t_k."""
-    x, p = m[0], r
-    out = np.empty(len(m))
-    out[0] = x
-    for k in range(1, len(m)):
-        p = p + q * (t[k] - t[k - 1])
-        g = p / (p + r)
-        x = x + g * (m[k] - x)
-        p = (1 - g) * p
-        out[k] = x
-    return out
-
-
 def kalman_cv(t_min: np.ndarray, meas_um: np.ndarray, q: float = 1e-6, noise_um: float = 0.005) -> np.ndarray:
     """One constant-velocity Kalman filter per axis, compensation predicted to the middle of the next interval."""
     t = np.asarray(t_min, float)
@@ -106,42 +94,74 @@ def kalman_cv(t_min: np.ndarray, meas_um: np.ndarray, q: float = 1e-6, noise_um:
     return c
 
 
-def kalman_bank(t_min: np.ndarray, meas_um: np.ndarray, noise_um: float = 0.005, q_bank=Q_BANK,
-                margin: float = MARGIN) -> np.ndarray:
-    """Per axis, choose causally among hold-last, local-level and constant-velocity Kalman filters.
+def _bank_run(t, m, lam, ql, qv, pv0, r):
+    """Run N two-state (level, velocity) Kalman filters on one axis at once.
 
-    At ``t_k`` each member's score is the sum of squared errors of its past predictions of the
-    next sample (made at t_j for t_{j+1}, j + 1 ≤ k); the member with the lowest score supplies
-    ``C_k`` (its prediction to the middle of the next interval). Until two predictions have been
-    scored, the q = 1e-6 member is used.
+    Velocity decays with rate ``lam`` (1/min; 0 = constant velocity), the level takes random-walk
+    noise ``ql`` (µm²/min), the velocity ``qv`` (µm²/min³); ``pv0`` is the prior velocity variance
+    (0 keeps a member a pure local level). Returns (mid (N, K): the mean level predicted over
+    [t_k, t_k + Δt_k], loglik (N, K): Gaussian log density of each sample's innovation, 0 at k = 0).
+    """
+    n, kk = len(lam), len(m)
+    dts = np.append(np.diff(t), np.diff(t)[-1:] if kk > 1 else [0.0])
+
+    def coefs(dt):
+        e = np.exp(-lam * dt)
+        safe = np.where(lam > 0, lam, 1.0)
+        g = np.where(lam > 0, (1 - e) / safe, dt)              # level gain of the velocity over dt
+        h = np.where(lam > 0, (dt - g) / (safe * max(dt, 1e-12)), dt / 2)  # mean of g(s) over [0, dt]
+        return e, g, h
+
+    x0, x1 = np.full(n, m[0]), np.zeros(n)
+    p00, p01, p11 = np.full(n, r), np.zeros(n), pv0.astype(float)
+    mid, ll = np.empty((n, kk)), np.zeros((n, kk))
+    for k in range(kk):
+        if k > 0:
+            dt = t[k] - t[k - 1]
+            e, g, _ = coefs(dt)
+            x0, x1 = x0 + g * x1, e * x1
+            p00, p01, p11 = (p00 + 2 * g * p01 + g * g * p11 + ql * dt + qv * dt ** 3 / 3,
+                             e * (p01 + g * p11) + qv * dt ** 2 / 2, e * e * p11 + qv * dt)
+            p11 = np.where(pv0 > 0, p11, 0.0)
+            p01 = np.where(pv0 > 0, p01, 0.0)
+            s = p00 + r
+            nu = m[k] - x0
+            ll[:, k] = -0.5 * (np.log(2 * np.pi * s) + nu * nu / s)
+            g0, g1 = p00 / s, p01 / s
+            x0, x1 = x0 + g0 * nu, x1 + g1 * nu
+            p00, p01, p11 = p00 - g0 * p00, p01 - g0 * p01, p11 - g1 * p01
+        _, _, h = coefs(dts[k])
+        mid[:, k] = x0 + h * x1
+    return mid, ll
+
+
+def kalman_bank(t_min: np.ndarray, meas_um: np.ndarray, noise_um: float = 0.005, level_q=LEVEL_Q,
+                trend_ql=TREND_QL, trend_penalty: float = TREND_PENALTY) -> np.ndarray:
+    """Bayesian model average of local-level and damped-trend Kalman filters, per axis.
+
+    Members: local-level (random-walk) filters with process noise ``level_q`` (µm²/min), and
+    level + damped-velocity filters (a thermal approach: velocity decaying with time constant
+    ``TREND_TAU_MIN``, level noise ``trend_ql``). At ``t_k`` each member's weight is its prior
+    (``-trend_penalty`` nats for a trend member) plus the summed log predictive density of the
+    samples up to ``t_k``; ``C_k`` is the weighted mean of the members' level averaged over the
+    next interval. A trend therefore moves the compensation only once the record shows it (on a
+    wandering drift the level members win and the estimate stays near the last measurement).
+    Causal and deterministic; ``meas_um`` (K, 3) µm, ``t_min`` (K,) min, returns (K, 3) µm.
     """
     t = np.asarray(t_min, float)
     m = np.asarray(meas_um, float)
-    dt = np.append(np.diff(t), np.diff(t)[-1:] if len(t) > 1 else [0.0])
+    nl, nt = len(level_q), len(trend_ql)
+    lam = np.r_[np.zeros(nl), np.full(nt, 1.0 / TREND_TAU_MIN)]
+    ql = np.r_[np.asarray(level_q, float), np.asarray(trend_ql, float)]
+    qv = np.r_[np.zeros(nl), np.full(nt, TREND_QV)]
+    pv0 = np.r_[np.zeros(nl), np.full(nt, TREND_V0_UM_MIN ** 2)]
+    prior = np.r_[np.zeros(nl), np.full(nt, -float(trend_penalty))]
     c = np.zeros_like(m)
     for ax in range(m.shape[1]):
-        mids, nexts = [], []
-        for q in q_bank:
-            pos, vel = _kf_run(t, m[:, ax], q, noise_um ** 2)
-            mids.append(pos + vel * dt / 2)
-            nexts.append(pos + vel * dt)
-        for q in LEVEL_Q_BANK:
-            lev = _kf_level(t, m[:, ax], q, noise_um ** 2)
-            mids.append(lev)
-            nexts.append(lev)
-        mids.append(m[:, ax])
-        nexts.append(m[:, ax])
-        mids, nexts = np.array(mids), np.array(nexts)
-        err = np.zeros((len(mids), len(t)))
-        err[:, 1:] = (nexts[:, :-1] - m[None, 1:, ax]) ** 2
-        score = np.cumsum(err, axis=1)  # score[:, k] uses predictions checked at samples <= k
-        default = list(q_bank).index(1e-6) if 1e-6 in q_bank else 0
-        best = np.argmin(score, axis=0)
-        hold = len(mids) - 1
-        # do no harm: leave hold-last only for a member clearly better on the record so far
-        best = np.where(score[best, np.arange(len(t))] <= margin * score[hold], best, hold)
-        pick = np.where(np.arange(len(t)) >= 2, best, default)
-        c[:, ax] = mids[pick, np.arange(len(t))]
+        mid, ll = _bank_run(t, m[:, ax], lam, ql, qv, pv0, noise_um ** 2)
+        score = prior[:, None] + np.cumsum(ll, axis=1)
+        w = np.exp(score - score.max(axis=0))
+        c[:, ax] = (w * mid).sum(axis=0) / w.sum(axis=0)
     return c
 
 

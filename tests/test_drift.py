@@ -45,9 +45,31 @@ def test_better_estimator_reaches_90(etas):
 
 
 def test_better_estimator_does_not_lose_to_hold_on_wander(etas):
+    """Issue 4: the default must not lose to holding the last sample on a wandering drift.
+
+    10 records only (test speed): per-axis medians within 0.5 point, the mean over records and
+    axes at least hold's (the 0.1-point goal is checked on 30 + 200 records in the benchmark).
+    """
     k, h = np.median(etas["wander", "kalman"], axis=0), np.median(etas["wander", "hold"], axis=0)
-    assert np.all(k >= h - 1.5), (k, h)
-    assert np.mean(etas["wander", "kalman"]) >= np.mean(etas["wander", "hold"]) - 1.5
+    assert np.all(k >= h - 0.5), (k, h)
+    assert np.mean(etas["wander", "kalman"]) >= np.mean(etas["wander", "hold"])
+
+
+def test_better_estimator_beats_hold_on_thermal(etas):
+    """On the slow thermal approach the trend members must pay off against hold-last."""
+    k, h = etas["thermal", "kalman"], etas["thermal", "hold"]
+    assert np.all(np.median(k, axis=0) > np.median(h, axis=0)), (np.median(k, axis=0), np.median(h, axis=0))
+
+
+def test_bank_is_deterministic_and_tracks_a_ramp():
+    """Same input, same output bit for bit; a noise-free linear ramp ends up predicted to mid-interval."""
+    rng = np.random.default_rng(3)
+    m = np.cumsum(rng.normal(0, 0.01, (25, 3)), axis=0)
+    assert np.array_equal(compensate(T_S, m, "kalman"), compensate(T_S, m, "kalman"))
+    ramp = np.outer(T_S * 0.002, [1.0, -1.0, 0.5])  # 0.002 µm/min, 0.02 µm per sample
+    c = compensate(T_S, ramp, "kalman")
+    mid = np.outer((T_S + 5) * 0.002, [1.0, -1.0, 0.5])
+    assert np.all(np.abs(c[-5:] - mid[-5:]) < np.abs(ramp[-5:] - mid[-5:]))  # closer than hold-last
 
 
 @pytest.mark.parametrize("method", list(METHODS))
