@@ -4,17 +4,21 @@ Positions are in the image frame: x = column index x pixel size, y = row index
 x pixel size (pixel centres, µm, y down the rows). Angles are measured from +x
 towards +y.
 
-AFM: each imprint is the blend of four facet planes. The planes are fitted to
-the heights (first one by one, then jointly as ``M = tau log sum exp(P_k / tau)``,
-which also fits the blunted floor and rounded ridges; robust loss). Adjacent
-facets intersected with the local original surface give the four corners; the
+AFM: each imprint is the blend of four facets. The facet planes are fitted to
+the heights (first one by one, then jointly as ``M = tau log sum exp(h_k / tau)``
+with ``h_k = L_k + q_k L_k^2``, ``L_k`` a plane: one curvature term per facet
+for facets bowed by elastic recovery; the blend fits the blunted floor and
+rounded ridges; robust loss). Each facet meets the local original surface
+(h = 0) on its line ``L_k = 0``; adjacent lines give the four corners; the
 circle through the corners gives the centre and the equivalent diameter (paper
 Fig. 6b); the minimum of ``M`` gives the floor and the depth.
 
 OM: each dark dot is fitted with an image model: a square (diamond) footprint
 of diagonal ``d`` and orientation, darker towards the floor, with a bright rim,
-blurred by an Airy PSF, over a linear background; the fit gives the sub-pixel
-centre and the apparent diameter.
+blurred by an Airy PSF, over a linear background. Darkness, rim and PSF are
+shared by the dots of one micrograph (:func:`measure_om_array`: a joint fit,
+block-arrow normal equations); each dot's fit gives the sub-pixel centre and the
+apparent diameter.
 """
 from __future__ import annotations
 
@@ -23,13 +27,13 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 from scipy.optimize import least_squares
-from scipy.signal import fftconvolve
+from scipy import fft as sfft
 from scipy.special import j1
 
 from .errors import MarkcalError
 from .register import index_grid, robust_rigid_fit
 
-__all__ = ["circle_fit", "Imprint", "detect_pits", "measure_afm", "detect_dots", "measure_om",
+__all__ = ["circle_fit", "Imprint", "detect_pits", "measure_afm", "detect_dots", "measure_om", "measure_om_array",
            "ArrayFit", "index_array", "size_stats", "IMPRINT_FIELDS"]
 
 #: per-imprint fields (``Imprint`` attributes that go into indents.csv)
@@ -177,76 +181,103 @@ def _quadrant(u, v):
     return np.where(u >= 0, np.where(v >= 0, 0, 3), np.where(v >= 0, 1, 2))
 
 
-def _fit_facets_joint(x, y, z, coef0, tau0, sigma):
-    """Joint robust fit of M = tau LSE(P_k / tau) to (x, y, z); coef (4, 3) for z = a x + b y + c."""
+def _facet_heights(coef, q, a):
+    """Facet heights h_k = L_k + q_k L_k^2 (L_k = plane k) at the points ``a`` = [x, y, 1]."""
+    lin = coef @ a.T
+    return lin + q[:, None] * lin * lin, lin
+
+
+def _fit_facets_joint(x, y, z, coef0, tau0, sigma, q0=None):
+    """Joint robust fit of M = tau LSE(h_k / tau) to (x, y, z).
+
+    Each facet is ``h_k = L_k + q_k L_k^2`` with the plane ``L_k = a x + b y + c``: a facet
+    curved across its height (convex after elastic recovery for q_k < 0) whose line where
+    it meets the original surface (h = 0) is still ``L_k = 0``. Returns coef (4, 3), q (4,),
+    tau and the residuals.
+    """
     a = np.column_stack([x, y, np.ones_like(x)])
 
     def unpack(p):
-        return p[:12].reshape(4, 3), np.exp(p[12])
+        return p[:12].reshape(4, 3), p[12:16], np.exp(p[16])
 
     def fun(p):
-        c, tau = unpack(p)
-        planes = c @ a.T
-        m, _ = _lse(planes, tau)
+        c, q, tau = unpack(p)
+        h, _ = _facet_heights(c, q, a)
+        m, _ = _lse(h, tau)
         return m - z
 
     def jac(p):
-        c, tau = unpack(p)
-        planes = c @ a.T
-        m, w = _lse(planes, tau)
-        j = np.empty((len(z), 13))
+        c, q, tau = unpack(p)
+        h, lin = _facet_heights(c, q, a)
+        m, w = _lse(h, tau)
+        j = np.empty((len(z), 17))
         for k in range(4):
-            j[:, 3 * k:3 * k + 3] = w[k][:, None] * a
-        j[:, 12] = m - (w * planes).sum(axis=0)
+            j[:, 3 * k:3 * k + 3] = (w[k] * (1 + 2 * q[k] * lin[k]))[:, None] * a
+            j[:, 12 + k] = w[k] * lin[k] * lin[k]
+        j[:, 16] = m - (w * h).sum(axis=0)
         return j
 
-    p0 = np.concatenate([coef0.ravel(), [np.log(max(tau0, 1e-3))]])
-    lo = np.full(13, -np.inf)
-    hi = np.full(13, np.inf)
-    lo[12], hi[12] = np.log(1e-3), np.log(1e3)
-    p0[12] = np.clip(p0[12], lo[12] + 1e-6, hi[12] - 1e-6)
+    q0 = np.zeros(4) if q0 is None else np.asarray(q0, dtype=float)
+    p0 = np.concatenate([coef0.ravel(), q0, [np.log(max(tau0, 1e-3))]])
+    lo = np.full(17, -np.inf)
+    hi = np.full(17, np.inf)
+    lo[16], hi[16] = np.log(1e-3), np.log(1e3)
+    p0[16] = np.clip(p0[16], lo[16] + 1e-6, hi[16] - 1e-6)
     r = least_squares(fun, p0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * sigma, 0.3),
                       x_scale="jac", max_nfev=60)
-    c, tau = unpack(r.x)
-    return c, float(tau), r.fun
+    c, q, tau = unpack(r.x)
+    return c, q, float(tau), r.fun
 
 
-def _floor(coef, tau, start=None):
-    """Minimum of the convex M = tau LSE(P_k / tau): damped Newton from the facets' apex.
+def _floor(coef, tau, start=None, q=None):
+    """Minimum of M = tau LSE(h_k / tau), h_k = L_k + q_k L_k^2: damped Newton from the planes' apex.
 
     Returns (x, y, M) in the planes' coordinates.
     """
     g_k = coef[:, :2]
+    q = np.zeros(4) if q is None else np.asarray(q, dtype=float)
 
     def val(p):
-        planes = coef @ np.array([p[0], p[1], 1.0])
-        m = planes.max()
-        e = np.exp((planes - m) / tau)
-        return m + tau * np.log(e.sum()), e / e.sum()
+        lin = coef @ np.array([p[0], p[1], 1.0])
+        h = lin + q * lin * lin
+        m = h.max()
+        e = np.exp((h - m) / tau)
+        return m + tau * np.log(e.sum()), e / e.sum(), lin
 
     # apex: least-squares point where the four planes meet
     a = np.column_stack([g_k, -np.ones(4)])
     apex, *_ = np.linalg.lstsq(a, -coef[:, 2], rcond=None)
     p = apex[:2].copy()
-    f, w = val(p)
+    f, w, lin = val(p)
     for _ in range(60):
-        g = w @ g_k
-        h = (g_k.T * w) @ g_k / tau - np.outer(g, g) / tau
-        h += (1e-9 + 1e-6 * np.trace(h)) * np.eye(2)
+        gk = g_k * (1 + 2 * q * lin)[:, None]
+        g = w @ gk
+        h = (gk.T * w) @ gk / tau - np.outer(g, g) / tau + (g_k.T * (2 * q * w)) @ g_k
+        h += (1e-9 + 1e-6 * abs(np.trace(h))) * np.eye(2)
         step = np.linalg.solve(h, g)
+        if g @ step <= 0:
+            step = g / max(abs(np.trace(h)), 1e-12)
         t = 1.0
         while t > 1e-6:
-            q = p - t * step
-            fq, wq = val(q)
+            qq = p - t * step
+            fq, wq, lq = val(qq)
             if fq <= f - 1e-4 * t * (g @ step) or fq <= f:
                 break
             t *= 0.5
         else:
             break
         if abs(f - fq) < 1e-12 and t * np.hypot(*step) < 1e-9:
-            p, f, w = q, fq, wq
+            p, f, w, lin = qq, fq, wq, lq
             break
-        p, f, w = q, fq, wq
+        p, f, w, lin = qq, fq, wq, lq
+    half = abs(float(np.mean(coef[:, 2]))) / max(float(np.mean(np.hypot(*g_k.T))), 1e-12)  # ~ half-diagonal
+    if not (np.all(np.isfinite(p)) and np.isfinite(f) and np.hypot(p[0] - apex[0], p[1] - apex[1]) < 0.3 * half):
+        # the curved facets sent Newton away: take the best point near the planes' apex
+        r = 0.2 * half
+        gx, gy = np.meshgrid(np.linspace(-r, r, 41) + apex[0], np.linspace(-r, r, 41) + apex[1])
+        vals = [val((a_, b_))[0] for a_, b_ in zip(gx.ravel(), gy.ravel())]
+        j = int(np.argmin(vals))
+        return float(gx.ravel()[j]), float(gy.ravel()[j]), float(vals[j])
     return p[0], p[1], float(f)
 
 
@@ -313,6 +344,7 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
     result = None
     coef = None
     tau = None
+    qk = None
     shift = np.zeros(2)
     for it in range(3):
         win = int(np.ceil(max(3.6 * r_est, r_est + 8)))
@@ -362,7 +394,7 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         fit_px = fin & (pmax < -max(3.0, 4 * noise_nm, 0.06 * h_apex)) & (rad < 1.6 * r_est)
         if fit_px.sum() < 16:
             return None
-        coef, tau, res = _fit_facets_joint(x[fit_px], y[fit_px], zr[fit_px], coef, tau, noise_nm)
+        coef, qk, tau, res = _fit_facets_joint(x[fit_px], y[fit_px], zr[fit_px], coef, tau, noise_nm, qk)
         # facets must slope up outwards, one per quadrant around the apex
         corners = []
         for k, k2 in ((3, 0), (0, 1), (1, 2), (2, 3)):
@@ -374,7 +406,7 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         ccx, ccy, crad = circle_fit(corners)
         if not np.isfinite(crad) or crad <= 0:
             return None
-        fx, fy, fm = _floor(coef, tau, (ccx, ccy))
+        fx, fy, fm = _floor(coef, tau, (ccx, ccy), qk)
         result = dict(corners=corners, ccx=ccx, ccy=ccy, crad=crad, depth=-fm, tau=tau, res=res, zr=zr,
                       x=x, y=y, fit_px=fit_px, origin=(cx * pixel_um, cy * pixel_um))
         # next round: window centred on the circle, radius from the corners; shifting the
@@ -477,44 +509,323 @@ def detect_dots(img: np.ndarray, pixel_um: float, min_diameter_um: float = 0.4) 
     return out, sigma
 
 
+_AIRY_CACHE: dict = {}
+
+
 def _airy(psf_um, sub_um):
     """Airy (diffraction-limited, in focus) intensity PSF whose Gaussian-equivalent sigma is ``psf_um``.
 
-    sigma ~ 0.21 lambda / NA, so v = 2 pi NA r / lambda = 2 pi 0.21 r / sigma.
+    sigma ~ 0.21 lambda / NA, so v = 2 pi NA r / lambda = 2 pi 0.21 r / sigma; sampled at
+    ``sub_um`` out to 1.8 lambda / NA. Cached (read-only arrays).
     """
+    key = (float(psf_um), float(sub_um))
+    k = _AIRY_CACHE.get(key)
+    if k is None:
+        if len(_AIRY_CACHE) > 64:
+            _AIRY_CACHE.clear()
+        k = _AIRY_CACHE[key] = _airy_kernel(psf_um, sub_um)
+        k.flags.writeable = False
+    return k
+
+
+def _airy_kernel(psf_um, sub_um):
     lam_na = psf_um / 0.21
-    h = max(2, int(np.ceil(1.3 * lam_na / sub_um)))
+    h = max(2, int(np.ceil(1.8 * lam_na / sub_um)))
     yy, xx = np.mgrid[-h:h + 1, -h:h + 1] * sub_um
     v = np.maximum(2 * np.pi * np.hypot(xx, yy) / lam_na, 1e-9)
     k = (2 * j1(v) / v) ** 2
     return k / k.sum()
 
 
-def _om_model(p, xf, yf, ss, sub_um):
-    """Relative dot image (background 1): dark diamond darker to the floor, bright rim outside.
+#: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
+#: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
+#: material): interior darkness at the edge and its increase to the floor, rim height and width
+#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm).
+_OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
+_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf")
+_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04])
+_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6])
+_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5])
+_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
 
-    Evaluated on an ``ss``-times finer grid (``xf``, ``yf`` µm) with an
-    anti-aliased edge, blurred by an Airy PSF (Gaussian-equivalent sigma ``psf`` µm) and averaged
-    over each pixel. The rim is ``rim t^2 exp(2 (1 - t))``, t = (rho - 1) / rim_w,
-    rho = (|u| + |v|) / (d / 2) (1 at the edge).
+
+class _OmPatch:
+    """One dot's patch (grey values / illumination) and its image model.
+
+    The model is evaluated on a 2x finer grid: relative reflectance (background 1) of a
+    diamond of diagonal ``d``, darker to the floor, with a bright rim ``rim t^2 exp(2 (1 - t))``,
+    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge; blurred by an Airy PSF
+    and averaged over each pixel (one FFT convolution with the PSF folded with the 2 x 2 pixel
+    box, its transform cached per PSF), times a linear background.
     """
-    cx, cy, d, th, dark0, dark1, rim, rim_w, psf = p
+
+    def __init__(self, img, background, pixel_um, row, col, radius_px):
+        ny, nx = img.shape
+        self.r_est = max(radius_px, 2.0)
+        # a large dot (diagonal >= 16 px) needs no sub-pixel grid: its edge is anti-aliased
+        self.ss = 1 if self.r_est >= 8 else 2
+        half = int(np.ceil(self.r_est * 1.5 + 0.6 / pixel_um + 2))
+        r0, r1 = max(0, int(round(row)) - half), min(ny, int(round(row)) + half + 1)
+        c0, c1 = max(0, int(round(col)) - half), min(nx, int(round(col)) + half + 1)
+        patch = img[r0:r1, c0:c1].astype(np.float64)
+        self.ok = patch.shape[0] >= 7 and patch.shape[1] >= 7
+        if background is not None:
+            patch = patch / background[r0:r1, c0:c1]
+        else:
+            patch = patch / np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]]))
+        self.patch = patch
+        self.row, self.col, self.pixel_um = row, col, pixel_um
+        yy, xx = np.mgrid[r0:r1, c0:c1] * pixel_um
+        self.xc0, self.yc0 = float(xx.mean()), float(yy.mean())
+        self.dx, self.dy = xx - self.xc0, yy - self.yc0
+        ss = self.ss
+        self.sub = pixel_um / ss
+        fr = (np.arange((r1 - r0) * ss) - (ss - 1) / 2) / ss + r0
+        fc = (np.arange((c1 - c0) * ss) - (ss - 1) / 2) / ss + c0
+        self.yf, self.xf = np.meshgrid(fr * pixel_um, fc * pixel_um, indexing="ij")
+        self._kern = {}
+
+    def _kernel_fft(self, psf):
+        got = self._kern.get(psf)
+        if got is None:
+            k = _airy(psf, self.sub)
+            h = k.shape[0] // 2
+            # fold in the ss x ss pixel box: pixel mean = full[h + ss - 1 + ss i]
+            ss = self.ss
+            k2 = np.zeros((k.shape[0] + ss - 1, k.shape[1] + ss - 1))
+            for a in range(ss):
+                for b in range(ss):
+                    k2[a:a + k.shape[0], b:b + k.shape[1]] += k / ss ** 2
+            shape = tuple(sfft.next_fast_len(n + 2 * h + ss - 1, real=True) for n in self.xf.shape)
+            got = (sfft.rfft2(k2, shape), h, shape)
+            if len(self._kern) > 8:
+                self._kern.clear()
+            self._kern[psf] = got
+        return got
+
+    def dev(self, g, s):
+        """Reflectance - 1 on the fine grid."""
+        cx, cy, d, th = g[:4]
+        dark0, dark1, rim, rim_w = s[:4]
+        ct, st = np.cos(th), np.sin(th)
+        ex, ey = self.xf - cx, self.yf - cy
+        half = max(d / 2, 1e-3)
+        rho = (np.abs(ex * ct + ey * st) + np.abs(ey * ct - ex * st)) / half
+        inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
+        t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
+        return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+
+    def blur(self, dev, psf):
+        """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
+        kf, h, shape = self._kernel_fft(float(psf))
+        full = sfft.irfft2(sfft.rfft2(dev, shape) * kf, shape)
+        ny, nx = self.patch.shape
+        ss, o = self.ss, h + self.ss - 1
+        return full[..., o:o + ss * ny:ss, o:o + ss * nx:ss]
+
+    def lin(self, g):
+        return g[4] + g[5] * self.dx + g[6] * self.dy
+
+    def model(self, g, s):
+        """Model grey values / illumination for own parameters ``g`` and shared ``s``."""
+        return (1.0 + self.blur(self.dev(g, s), s[4])) * self.lin(g)
+
+    def jac(self, g, s, shared=True):
+        """Model and forward-difference Jacobian (pixels x (7 own [+ 5 shared]) columns)."""
+        devs = [self.dev(g, s)]
+        for j in range(4):
+            gj = g.copy()
+            gj[j] += _OM_OWN_STEP[j]
+            devs.append(self.dev(gj, s))
+        if shared:
+            for j in range(4):
+                sj = s.copy()
+                sj[j] += _OM_SHARED_STEP[j]
+                devs.append(self.dev(g, sj))
+        pix = self.blur(np.stack(devs), s[4])
+        lin = self.lin(g)
+        base = 1.0 + pix[0]
+        m = base * lin
+        cols = [(pix[1 + j] - pix[0]) * lin / _OM_OWN_STEP[j] for j in range(4)]
+        cols += [base, base * self.dx, base * self.dy]
+        if shared:
+            cols += [(pix[5 + j] - pix[0]) * lin / _OM_SHARED_STEP[j] for j in range(4)]
+            cols.append((self.blur(devs[0], s[4] + _OM_SHARED_STEP[4]) - pix[0]) * lin / _OM_SHARED_STEP[4])
+        return m.ravel(), np.stack([c.ravel() for c in cols], axis=1)
+
+    def own_bounds(self, d0):
+        x, y = self.col * self.pixel_um, self.row * self.pixel_um
+        lo = np.array([x - 2 * d0, y - 2 * d0, 0.2 * d0, -np.inf, 0.5, -np.inf, -np.inf])
+        hi = np.array([x + 2 * d0, y + 2 * d0, 3 * d0, np.inf, 2.0, np.inf, np.inf])
+        return lo, hi
+
+    def start(self, s):
+        """Starting own parameters: candidate centre and size, best of four orientations."""
+        d0 = 2 * self.r_est * self.pixel_um
+        gs = [np.array([self.col * self.pixel_um, self.row * self.pixel_um, d0, th, 1.0, 0.0, 0.0])
+              for th in np.radians([0.0, 22.5, 45.0, 67.5])]
+        pix = self.blur(np.stack([self.dev(g, s) for g in gs]), s[4])
+        cost = [np.sum(((1 + p) - self.patch) ** 2) for p in pix]
+        return gs[int(np.argmin(cost))], d0
+
+
+def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
+    """Fit the shared parameters and every patch's own parameters jointly (robust loss).
+
+    The Jacobian is built block by block: a patch depends only on its own seven parameters
+    and the five shared ones.
+    """
+    k = len(patches)
+    sizes = [p.patch.size for p in patches]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+    target = np.concatenate([p.patch.ravel() for p in patches])
+    lo = [_OM_SHARED_LO]
+    hi = [_OM_SHARED_HI]
+    for p, d in zip(patches, d0):
+        a, b = p.own_bounds(d)
+        lo.append(a)
+        hi.append(b)
+    lo, hi = np.concatenate(lo), np.concatenate(hi)
+    x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
+
+    def split(x):
+        return x[:5], x[5:].reshape(k, 7)
+
+    def fun(x):
+        s, g = split(x)
+        return np.concatenate([p.model(g[i], s).ravel() for i, p in enumerate(patches)]) - target
+
+    def jac(x):
+        s, g = split(x)
+        jm = np.zeros((offs[-1], x.size))
+        for i, p in enumerate(patches):
+            _m, jp = p.jac(g[i], s)
+            rows = slice(offs[i], offs[i + 1])
+            jm[rows, 5 + 7 * i:12 + 7 * i] = jp[:, :7]
+            jm[rows, :5] = jp[:, 7:]
+        return jm
+
+    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=scale, max_nfev=max_nfev)
+    s, g = split(r.x)
+    res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
+    return s, g, res
+
+
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
+    """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
+
+    The normal equations have a block-arrow structure (each patch couples its seven own
+    parameters only with the five shared ones), solved through the Schur complement of the
+    shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
+    iteratively reweighted least squares; bounds by clipping.
+
+    Returns
+    -------
+    s : ndarray (5,), g : ndarray (k, 7), res : list of residual arrays
+    """
+    f = max(3 * noise_rel, 0.005)
+    bounds = [p.own_bounds(d) for p, d in zip(patches, d0)]
+    lo_g = np.array([b[0] for b in bounds]) + 1e-9
+    hi_g = np.array([b[1] for b in bounds]) - 1e-9
+    g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
+    s = np.clip(np.array(s, dtype=float), _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+    targets = [p.patch.ravel() for p in patches]
+
+    def cost_of(res):
+        return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
+
+    lam = 1e-3
+    res = None
+    for _it in range(n_iter):
+        U, W, ga = [], [], []
+        V = np.zeros((5, 5))
+        gb = np.zeros(5)
+        res = []
+        for i, p in enumerate(patches):
+            m, jm = p.jac(g[i], s)
+            r = m - targets[i]
+            res.append(r)
+            w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
+            a, b = jm[:, :7], jm[:, 7:]
+            aw, bw = a * w[:, None], b * w[:, None]
+            U.append(a.T @ aw)
+            W.append(aw.T @ b)
+            ga.append(aw.T @ r)
+            V += b.T @ bw
+            gb += bw.T @ r
+        cost = cost_of(res)
+        improved = False
+        for _try in range(5):
+            uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
+            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(5)
+            rhs = gb.copy()
+            for ui, wi, gi in zip(uinv, W, ga):
+                S -= wi.T @ ui @ wi
+                rhs -= wi.T @ ui @ gi
+            ds = -np.linalg.solve(S, rhs)
+            dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
+            s_new = np.clip(s + ds, _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+            g_new = np.clip(g + dg, lo_g, hi_g)
+            res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
+            c_new = cost_of(res_new)
+            if c_new < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        rel = (cost - c_new) / max(cost, 1e-30)
+        s, g, res = s_new, g_new, res_new
+        lam = max(lam / 3.0, 1e-7)
+        if rel < 1e-6:
+            break
+    if res is None:
+        res = [p.model(g[i], s).ravel() - targets[i] for i, p in enumerate(patches)]
+    return s, g, res
+
+
+def _om_own_fit(p, g0, d0, s, noise_rel, max_nfev=40):
+    """Fit one patch's own parameters with the shared ones fixed."""
+    lo, hi = p.own_bounds(d0)
+    target = p.patch.ravel()
+    x0 = np.clip(g0, lo + 1e-9, hi - 1e-9)
+
+    def fun(g):
+        return p.model(g, s).ravel() - target
+
+    def jac(g):
+        return p.jac(g, s, shared=False)[1]
+
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001]), max_nfev=max_nfev)
+    return r.x, r.fun
+
+
+def _om_imprint(g, s, res, n_pixels):
+    cx, cy, d, th = g[:4]
     ct, st = np.cos(th), np.sin(th)
-    u = (xf - cx) * ct + (yf - cy) * st
-    v = -(xf - cx) * st + (yf - cy) * ct
-    half = max(d / 2, 1e-3)
-    rho = (np.abs(u) + np.abs(v)) / half
-    inside = np.clip(0.5 - (rho - 1) * half / np.sqrt(2) / sub_um, 0.0, 1.0)
-    t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
-    refl = 1.0 - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1)) + rim * t * t * np.exp(2 * (1 - t))
-    refl = fftconvolve(np.pad(refl - 1.0, 0), _airy(psf, sub_um), mode="same") + 1.0
-    ny, nx = refl.shape[0] // ss, refl.shape[1] // ss
-    return refl.reshape(ny, ss, nx, ss).mean(axis=(1, 3))
+    corners = np.array([[d / 2 * ct, d / 2 * st], [-d / 2 * st, d / 2 * ct],
+                        [-d / 2 * ct, -d / 2 * st], [d / 2 * st, -d / 2 * ct]]) + [cx, cy]
+    d1, d2, orient = _diagonals(corners)
+    nan = float("nan")
+    return Imprint(x_um=float(cx), y_um=float(cy), diameter_um=float(d), diag1_um=float(d1), diag2_um=float(d2),
+                   depth_nm=nan, hd_ratio=nan, orientation_deg=float(orient), pileup_nm=nan, corners_um=corners,
+                   fit_rms=float(np.sqrt(np.mean(res ** 2))), n_pixels=int(n_pixels), psf_um=float(s[4]),
+                   contrast=float(s[0]))
+
+
+_OM_S0 = np.array([0.4, 0.1, 0.15, 0.2, 0.15])
 
 
 def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_px: float,
                noise_rel: float, background: np.ndarray | None = None) -> Imprint | None:
-    """Measure one dark dot: sub-pixel centre and apparent diameter by an image-model fit.
+    """Measure one dark dot on its own: sub-pixel centre and apparent diameter by an image-model fit.
+
+    All twelve model parameters (own and shared, see :func:`measure_om_array`) are fitted to
+    this dot alone; with several dots in one micrograph :func:`measure_om_array` is more
+    accurate (the darkness, rim and PSF correlate with the diameter of a small dot).
 
     Parameters
     ----------
@@ -532,63 +843,95 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
     Imprint or None
         None for a blob that is not an imprint (no sharp edge, no dark core).
     """
-    ny, nx = img.shape
-    r_est = max(radius_px, 2.0)
-    half = int(np.ceil(r_est * 1.5 + 0.6 / pixel_um + 2))
-    r0, r1 = max(0, int(round(row)) - half), min(ny, int(round(row)) + half + 1)
-    c0, c1 = max(0, int(round(col)) - half), min(nx, int(round(col)) + half + 1)
-    patch = img[r0:r1, c0:c1].astype(np.float64)
-    if patch.shape[0] < 7 or patch.shape[1] < 7:
+    p = _OmPatch(img, background, pixel_um, row, col, radius_px)
+    if not p.ok:
         return None
-    if background is not None:
-        patch = patch / background[r0:r1, c0:c1]
-    else:
-        patch = patch / np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]]))
-    yy, xx = np.mgrid[r0:r1, c0:c1] * pixel_um
-    xc0, yc0 = xx.mean(), yy.mean()
-    ss = 2
-    sub = pixel_um / ss
-    fr = (np.arange((r1 - r0) * ss) - (ss - 1) / 2) / ss + r0
-    fc = (np.arange((c1 - c0) * ss) - (ss - 1) / 2) / ss + c0
-    yf, xf = np.meshgrid(fr * pixel_um, fc * pixel_um, indexing="ij")
-
-    # q: cx, cy, d, theta, bg, gx, gy, dark0, dark1, rim, rim_w, psf
-    def resid(q):
-        m = _om_model((*q[:4], *q[7:12]), xf, yf, ss, sub)
-        return (m * (q[4] + q[5] * (xx - xc0) + q[6] * (yy - yc0)) - patch).ravel()
-
-    d0 = 2 * r_est * pixel_um
-    dark = float(np.clip(1 - patch.min(), 0.1, 0.9))
-    lo = np.array([col * pixel_um - 2 * d0, row * pixel_um - 2 * d0, 0.2 * d0, -np.inf, 0.5, -np.inf, -np.inf,
-                   0.0, -1.0, -0.5, 0.03, 0.04])
-    hi = np.array([col * pixel_um + 2 * d0, row * pixel_um + 2 * d0, 3 * d0, np.inf, 2.0, np.inf, np.inf,
-                   1.0, 1.0, 2.0, 0.8, 0.6])
-    best = None
-    for th in np.radians([0.0, 22.5, 45.0, 67.5]):
-        q0 = np.array([col * pixel_um, row * pixel_um, d0, th, 1.0, 0.0, 0.0, dark, 0.0, 0.1, 0.2, 0.15])
-        c = float(np.sum(resid(q0) ** 2))
-        if best is None or c < best[0]:
-            best = (c, q0)
-    q0 = np.clip(best[1], lo + 1e-9, hi - 1e-9)
-    r = least_squares(resid, q0, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001, 0.05, 0.05, 0.05, 0.05,
-                                        0.02]), max_nfev=60)
-    q = r.x
-    cx, cy, d, th = q[:4]
-    dark0, dark1, psf = q[7], q[8], q[11]
-    # an imprint has a dark core with a sharp edge; soft dust blobs do not
-    if dark0 + max(dark1, 0) < 0.08 or psf > 0.45 or d < 0.25:
+    s0 = _OM_S0.copy()
+    s0[0] = float(np.clip(1 - p.patch.min(), 0.1, 0.9))
+    g0, d0 = p.start(s0)
+    s, g, res = _om_joint_fit([p], g0[None], [d0], s0, noise_rel, max_nfev=60)
+    g = g[0]
+    if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45 or g[2] < 0.25:
         return None
-    ct, st = np.cos(th), np.sin(th)
-    corners = np.array([[d / 2 * ct, d / 2 * st], [-d / 2 * st, d / 2 * ct],
-                        [-d / 2 * ct, -d / 2 * st], [d / 2 * st, -d / 2 * ct]]) + [cx, cy]
-    d1, d2, orient = _diagonals(corners)
-    nan = float("nan")
-    return Imprint(x_um=float(cx), y_um=float(cy), diameter_um=float(d), diag1_um=float(d1), diag2_um=float(d2),
-                   depth_nm=nan, hd_ratio=nan, orientation_deg=float(orient), pileup_nm=nan, corners_um=corners,
-                   fit_rms=float(np.sqrt(np.mean(r.fun ** 2))), n_pixels=int(patch.size),
-                   psf_um=float(psf),
-                   contrast=float(dark0))
+    return _om_imprint(g, s, res[0], p.patch.size)
+
+
+def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_rel: float,
+                     background: np.ndarray | None = None, n_joint: int = 8,
+                     refine_all: bool = True) -> list:
+    """Measure every dark dot of one micrograph with shared darkness, rim and PSF.
+
+    One objective blurs every imprint alike and one material darkens them alike, so the
+    interior darkness, its increase to the floor, the rim height and width and the PSF are
+    fitted once, jointly on up to ``n_joint`` typical dots (size nearest the median); every
+    dot is then fitted with those fixed (centre, diagonal, orientation, linear background):
+    this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
+    shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
+    out-of-focus dust) are returned as None. With fewer than three candidates every dot is
+    fitted on its own (:func:`measure_om`).
+
+    Parameters
+    ----------
+    candidates : list of (row, col, radius_px)
+        From :func:`detect_dots`.
+
+    Returns
+    -------
+    list of Imprint or None
+        One entry per candidate (same order); ``psf_um`` and ``contrast`` are the shared values.
+    """
+    if len(candidates) < 3:
+        return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
+    radii = np.array([rad for _r, _c, rad in candidates], dtype=float)
+    big = radii > 4 * np.median(radii)            # a stain or a shading, not a mark of this array
+    patches = [None if b else _OmPatch(img, background, pixel_um, r, c, rad)
+               for (r, c, rad), b in zip(candidates, big)]
+    ok = [i for i, p in enumerate(patches) if p is not None and p.ok]
+    out = [None] * len(candidates)
+    if not ok:
+        return out
+    s = _OM_S0.copy()
+    s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
+    starts = {i: patches[i].start(s) for i in ok}
+    rad = np.array([patches[i].r_est for i in ok])
+    # typical dots: radius nearest the median, then the darkest
+    order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
+    # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
+    n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
+    excluded = set()
+    for _round in range(3):
+        joint = [i for i in order if i not in excluded][:n_joint]
+        s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                [starts[i][1] for i in joint], s, noise_rel)
+        for i, gi in zip(joint, g):
+            starts[i] = (gi, starts[i][1])
+        fits = {}
+        for i in ok:
+            gi, res = _om_own_fit(patches[i], starts[i][0], starts[i][1], s, noise_rel)
+            p = patches[i]
+            core = np.hypot(p.dx + p.xc0 - gi[0], p.dy + p.yc0 - gi[1]).ravel() < gi[2] / 2 + 0.3
+            fits[i] = (gi, float(np.sqrt(np.mean(res ** 2))), res, float(np.sqrt(np.mean(res[core] ** 2))))
+        core = np.array([fits[i][3] for i in ok])
+        limit = 3.0 * max(float(np.median(core)), noise_rel)
+        bad = {i for i in ok if fits[i][3] > limit}
+        if not (bad & set(joint)):
+            break
+        excluded |= bad
+    # final: the shared parameters from every dot the shared model describes, all jointly
+    good = [i for i in ok if fits[i][3] <= limit]
+    if refine_all and len(good) > len(joint):
+        s, g, res = _om_block_fit([patches[i] for i in good], [fits[i][0] for i in good],
+                                  [starts[i][1] for i in good], s, noise_rel)
+        for i, gi, r in zip(good, g, res):
+            fits[i] = (gi, 0.0, r, 0.0)
+    if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
+        return out
+    for i in good:
+        gi, _r, res, _c = fits[i]
+        if gi[2] < 0.25:
+            continue
+        out[i] = _om_imprint(gi, s, res, patches[i].patch.size)
+    return out
 
 
 # ----------------------------------------------------------------------------- array
