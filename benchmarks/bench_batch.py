@@ -77,14 +77,16 @@ def main() -> int:
     ap.add_argument("--out", default="bench_out/batch")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--skip-100", action="store_true")
+    ap.add_argument("--scale", type=int, default=2, help="throughput batch = scale x (4 scans, 6 selfcal, 6 servo)")
     a = ap.parse_args()
     root = os.path.abspath(a.out)
     shutil.rmtree(root, ignore_errors=True)
     print(f"cores: {os.cpu_count()} (machine shared with other jobs: timings are noisy)")
 
     # 1. throughput
-    inp = os.path.join(root, "mix16")
-    render_batch_mix(inp, 11, MixOptions(n_scan=4, n_selfcal=6, n_servo=6, n_broken=0))
+    n_in = 16 * a.scale
+    inp = os.path.join(root, f"mix{n_in}")
+    render_batch_mix(inp, 11, MixOptions(n_scan=4 * a.scale, n_selfcal=6 * a.scale, n_servo=6 * a.scale, n_broken=0))
     t1, t2, loads = [], [], []
     for _ in range(a.repeats):
         loads.append(os.getloadavg()[0])
@@ -92,8 +94,9 @@ def main() -> int:
         loads.append(os.getloadavg()[0])
         t2.append(timed(inp, os.path.join(root, "w2"), workers=2)[0])
     m1, m2 = statistics.median(t1), statistics.median(t2)
-    print(f"throughput, 16 inputs (4 scans, 6 selfcal, 6 servo), median of {a.repeats}: "
-          f"1 worker {m1:.1f} s ({16 / m1:.2f} inputs/s), 2 workers {m2:.1f} s ({16 / m2:.2f} inputs/s): "
+    print(f"throughput, {n_in} inputs ({4 * a.scale} scans, {6 * a.scale} selfcal, {6 * a.scale} servo), "
+          f"median of {a.repeats}: 1 worker {m1:.1f} s ({n_in / m1:.2f} inputs/s), 2 workers {m2:.1f} s "
+          f"({n_in / m2:.2f} inputs/s): "
           f"ratio {m1 / m2:.2f}x (goal >= 1.7x)   runs 1w {[round(x, 1) for x in t1]}, 2w {[round(x, 1) for x in t2]}; "
           f"1-min load average before the runs {[round(x, 1) for x in loads]} (2 cores: above ~1 the cores are "
           "shared with other work and the ratio understates the speed-up)")
