@@ -15,13 +15,13 @@ from markcal.stages.errors import MarkcalError
 #: modules that add their own sub-commands: each has ``register(sub, render_sub)``
 #: taking the top-level and the ``render`` sub-parser collections.
 COMMAND_MODULES: tuple = (
-    "markcal.pipeline.cli_batch",
     "markcal.pipeline.cli_indents",
-    "markcal.pipeline.cli_pmcal",
-    "markcal.pipeline.cli_export",
     "markcal.pipeline.cli_selfcal",
-    "markcal.pipeline.cli_servo",
+    "markcal.pipeline.cli_pmcal",
     "markcal.pipeline.cli_path",
+    "markcal.pipeline.cli_servo",
+    "markcal.pipeline.cli_export",
+    "markcal.pipeline.cli_batch",
 )
 
 
