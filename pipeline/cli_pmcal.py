@@ -77,12 +77,18 @@ def cmd_render_pmcal(args) -> int:
 
     if not (args.noise_um >= 0 and np.isfinite(args.noise_um)):
         raise MarkcalError(f"--noise-um must be a non-negative number (got {args.noise_um})")
+    if args.pose_grid < 2:
+        raise MarkcalError(f"--pose-grid must be at least 2 (got {args.pose_grid})")
     say = progress(args.quiet)
     say(f"rendering a pmcal session, seed {args.seed}")
-    r = render_pm_session(args.seed, SessionOptions(noise_um=args.noise_um), drift_kind=args.drift_kind)
+    r = render_pm_session(args.seed, SessionOptions(noise_um=args.noise_um, pose_grid=args.pose_grid),
+                          drift_kind=args.drift_kind)
     os.makedirs(args.out, exist_ok=True)
     write_csv(os.path.join(args.out, "axes.csv"), r.axes)
-    write_csv(os.path.join(args.out, "pose.csv"), r.pose)
+    if args.om_images:
+        _write_om_marks(r, args.out, say)
+    else:
+        write_csv(os.path.join(args.out, "pose.csv"), r.pose)
     write_csv(os.path.join(args.out, "probe.csv"), r.probe)
     write_csv(os.path.join(args.out, "drift.csv"), r.drift)
     write_csv(os.path.join(args.out, "drift_true.csv"),
@@ -91,6 +97,20 @@ def cmd_render_pmcal(args) -> int:
     write_json(os.path.join(args.out, "truth.json"), r.truth)
     print(os.path.abspath(args.out))
     return 0
+
+
+def _write_om_marks(r, out, say) -> None:
+    """om/mark_NNN.tif (16-bit ImageJ TIFF with the pixel size) and marks.csv instead of pose.csv."""
+    from markcal.fixtures.indent_maps import tiff_bytes
+    from markcal.fixtures.pm_session import render_om_marks
+    from markcal.reports.files import atomic_write_bytes, write_csv
+
+    say(f"rendering {len(r.pose['x_pm_um'])} OM micrographs of the pose marks")
+    om = render_om_marks(r)
+    os.makedirs(os.path.join(out, "om"), exist_ok=True)
+    for name, img in zip(om.marks["image"], om.images):
+        atomic_write_bytes(os.path.join(out, "om", name), tiff_bytes(img, om.pixel_um))
+    write_csv(os.path.join(out, "marks.csv"), om.marks)
 
 
 def register(sub, render_sub) -> None:
@@ -104,7 +124,8 @@ def register(sub, render_sub) -> None:
                         "'pmcal command CAL.json TARGETS.csv' makes stage commands",
                         description="markcal pmcal SESSION_DIR --out DIR [--method ga|lsq|ga+lsq]\n"
                         "markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
-    pc.add_argument("session", help="session folder (axes.csv, pose.csv, probe.csv, drift.csv), or the word 'command'")
+    pc.add_argument("session", help="session folder (axes.csv, pose.csv or om/ + marks.csv, probe.csv, drift.csv), "
+                    "or the word 'command'")
     pc.add_argument("extra", nargs="*", help="with 'command': CALIBRATION.json TARGETS.csv")
     pc.add_argument("--out", required=True, help="output folder (calibration) or COMMANDS.csv (command)")
     pc.add_argument("--method", choices=METHODS, default="ga+lsq", help="calibration written (default ga+lsq)")
@@ -130,5 +151,8 @@ def register(sub, render_sub) -> None:
     rp.add_argument("--out", required=True)
     rp.add_argument("--noise-um", type=float, default=0.010, help="measurement noise (1 σ), µm")
     rp.add_argument("--drift-kind", choices=["thermal", "wander"], default="thermal")
+    rp.add_argument("--pose-grid", type=int, default=7, help="pose marks per side (default 7: 49 marks)")
+    rp.add_argument("--om-images", action="store_true",
+                    help="write om/ micrographs of the pose marks and marks.csv instead of pose.csv")
     rp.add_argument("--quiet", action="store_true")
     rp.set_defaults(func=cmd_render_pmcal)

@@ -69,6 +69,11 @@ def pmcal_report_html(result: PmcalResult) -> str:
              + (f' Against the truth: 100 targets land within RMS {num(s["landing_rms_um"], "µm")}, '
                 f'max {num(s["landing_max_um"], "µm")}, depth error max {num(s["depth_err_max_um"], "µm")}.'
                 if "landing_rms_um" in s else "") + "</div>"]
+    src = s.get("pose_source", "pose.csv")
+    parts.append(f"<p>{s['n_pose_pairs']} pose pairs from <code>{esc(src)}</code>"
+                 + (" (mark centres measured in the om/ micrographs with the indents OM model; OM position = "
+                    "image-centre position + offset, x along the columns, y down the rows)" if src == "marks.csv"
+                    else "") + ".</p>")
     for w in result.warnings:
         parts.append(f'<div class="warn">{esc(w)}</div>')
     parts.append("<h2>The three methods</h2>")

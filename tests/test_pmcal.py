@@ -170,7 +170,7 @@ def test_bad_sessions(session, tmp_path, capsys):
     d = _copy(session, tmp_path / "f")
     os.remove(d / "pose.csv")
     os.mkdir(d / "om")
-    assert "not supported" in _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
+    assert "marks.csv" in _bad(capsys, ["pmcal", str(d), "--out", out, "--quiet"])
 
     assert "no such" in _bad(capsys, ["pmcal", str(tmp_path / "nowhere"), "--out", out, "--quiet"])
     assert "depth-um" in _bad(capsys, ["pmcal", "command", "a.json", "b.csv", "--out", out, "--quiet"])
@@ -188,3 +188,75 @@ def test_small_probe_grid_warns_but_runs(session, tmp_path):
     s = json.load(open(out / "summary.json"))
     assert s["n_warnings"] >= 1 and s["n_probe_points"] == 9 and s["method"] == "lsq"
     assert s["landing_rms_um"] <= 0.05
+
+
+# ----------------------------------------------------------------------------- om/ + marks.csv variant
+
+@pytest.fixture(scope="module")
+def om_session(tmp_path_factory):
+    """Seed 7 with a 4 x 4 pose grid, pose pairs as OM micrographs (om/ + marks.csv)."""
+    out = tmp_path_factory.mktemp("pm") / "om"
+    assert main(["render", "pmcal", "--seed", "7", "--pose-grid", "4", "--om-images", "--out", str(out),
+                 "--quiet"]) == 0
+    return out
+
+
+def test_om_images_measured_to_nanometres():
+    """image -> centre: noise-free field positions, so x_om - truth is the OM measurement error alone."""
+    from markcal.fixtures.indent_maps import tiff_bytes
+    from markcal.fixtures.pm_session import SessionOptions, render_om_marks
+    from markcal.pipeline.flows.pmcal import read_om_marks
+    from markcal.stages.pm_model import tip_om
+    import tempfile
+
+    s = render_pm_session(7, SessionOptions(pose_grid=4))
+    om = render_om_marks(s, noise_um=0.0)
+    with tempfile.TemporaryDirectory() as d:
+        os.mkdir(os.path.join(d, "om"))
+        for name, img in zip(om.marks["image"], om.images):
+            open(os.path.join(d, "om", name), "wb").write(tiff_bytes(img, om.pixel_um))
+        write_csv(os.path.join(d, "marks.csv"), om.marks)
+        c_pose, x_om, lines, warnings = read_om_marks(d)
+    assert len(c_pose) == 16 and list(lines) == list(range(2, 18)) and not any("dropped" in w for w in warnings)
+    true = tip_om(s.model, np.column_stack([s.pose["x_pm_um"], s.pose["y_pm_um"], s.pose["z_pm_um"]]))
+    err = x_om[:, :2] - true[:, :2]
+    # OM centring noise ~3 nm (indents flow goal); the shared-optics fit gives ~1.5 nm here
+    assert np.sqrt(np.mean(err ** 2)) < 0.005 and np.abs(err).max() < 0.010
+
+
+def test_om_session_calibrates_like_pose_csv(om_session, tmp_path):
+    assert not (om_session / "pose.csv").exists() and len(os.listdir(om_session / "om")) == 16
+    assert list(read_csv(om_session / "marks.csv")) == ["x_pm_um", "y_pm_um", "z_pm_um", "image", "x_field_um",
+                                                        "y_field_um", "z_om_um"]
+    out = tmp_path / "o"
+    assert main(["pmcal", str(om_session), "--out", str(out), "--no-report", "--quiet"]) == 0
+    s = json.load(open(out / "summary.json"))
+    assert s["n_pose_pairs"] == 16 and s["pose_source"] == "marks.csv"
+    assert s["err_pose_rot_urad"] < 10
+    assert s["landing_rms_um"] <= 0.05 and s["landing_max_um"] <= 0.10 and s["depth_err_max_um"] <= 0.005
+    assert abs(s["err_nonorth_xy_urad"]) < 2 and abs(s["err_scale_x_ppm"]) < 5
+
+
+def test_om_session_drops_unfound_mark_and_needs_three(om_session, tmp_path, capsys):
+    from markcal.fixtures.indent_maps import tiff_bytes
+
+    d = _copy(om_session, tmp_path)
+    blank = np.random.default_rng(0).normal(30000, 300, (128, 128)).astype(np.uint16)
+    open(d / "om" / "mark_005.tif", "wb").write(tiff_bytes(blank, 0.1))
+    out = tmp_path / "o"
+    assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report", "--quiet"]) == 0
+    s = json.load(open(out / "summary.json"))
+    assert s["n_pose_pairs"] == 15 and s["n_warnings"] >= 1 and s["landing_rms_um"] <= 0.05
+    capsys.readouterr()
+    assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report"]) == 0
+    assert "marks.csv line 7 (mark_005.tif): no mark found; pair dropped" in capsys.readouterr().err
+
+    for i in range(2, 16):
+        open(d / "om" / f"mark_{i:03d}.tif", "wb").write(tiff_bytes(blank, 0.1))
+    msg = _bad(capsys, ["pmcal", str(d), "--out", str(out), "--quiet"])
+    assert "only 2 of 16" in msg and "om" in msg
+
+    d = _copy(om_session, tmp_path / "b")
+    os.remove(d / "om" / "mark_003.tif")
+    msg = _bad(capsys, ["pmcal", str(d), "--out", str(out), "--quiet"])
+    assert "mark_003.tif" in msg and "no such file" in msg
