@@ -23,13 +23,13 @@ right, y down the rows.
 """
 from __future__ import annotations
 
-import os
 import re
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from .errors import MarkcalError
+from .io import existing_file
 
 __all__ = ["Image", "read_image", "parse_gsf", "gsf_bytes"]
 
@@ -89,12 +89,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         Missing or unreadable file, not an image, no pixel size, all-NaN or
         constant data. The message names the file.
     """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise MarkcalError("no such file", path)
-    if os.path.getsize(path) == 0:
-        raise MarkcalError("file is empty", path)
-    ext = os.path.splitext(path)[1].lower()
+    path, ext = existing_file(path)
     readers = {".tif": _read_tiff, ".tiff": _read_tiff, ".gsf": _read_gsf, ".gwy": _read_gwy,
                ".ibw": _read_ibw}
     if ext not in readers:

@@ -25,6 +25,16 @@ class PointCloud:
     intensity: np.ndarray
 
 
+def existing_file(path) -> tuple:
+    """Check that ``path`` is a non-empty file; return ``(path as str, lower-case extension)``."""
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise MarkcalError("no such file", path)
+    if os.path.getsize(path) == 0:
+        raise MarkcalError("file is empty", path)
+    return path, os.path.splitext(path)[1].lower()
+
+
 def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
     """Read a point cloud with intensity; ``units_scale`` converts file units to mm.
 
@@ -33,12 +43,7 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
     MarkcalError
         Missing, empty, truncated or malformed file, no intensity, NaN coordinates.
     """
-    path = os.fspath(path)
-    if not os.path.isfile(path):
-        raise MarkcalError("no such file", path)
-    if os.path.getsize(path) == 0:
-        raise MarkcalError("file is empty", path)
-    ext = os.path.splitext(path)[1].lower()
+    path, ext = existing_file(path)
     readers = {".ply": _read_ply, ".pcd": _read_pcd, ".npy": _read_npy,
                ".csv": _read_text, ".txt": _read_text, ".xyz": _read_text, ".pts": _read_text}
     if ext not in readers:
