@@ -37,14 +37,6 @@ DATA_FILES = (
 )
 AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
 
-_e = esc
-_num = num
-_fig = new_figure
-_png_b64 = png_b64
-_img = img
-_table = table
-
-
 def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
     """Magnification making the longest arrow about 0.8 of a pitch."""
     if not np.isfinite(max_len_mm) or max_len_mm <= 0:
@@ -64,47 +56,47 @@ def _verdict(s: dict, kind: str) -> str:
     if s.get("n_missing"):
         parts[0] += f" ({s['n_missing']} missing)"
     if kind == "validation":
-        parts.append(f"residual after calibration: RMS {_num(s.get('rms_mm'))}, max {_num(s.get('max_mm'))}")
+        parts.append(f"residual after calibration: RMS {num(s.get('rms_mm'))}, max {num(s.get('max_mm'))}")
     else:
-        parts.append(f"measured deviation: RMS {_num(s.get('rms_mm'))}, max {_num(s.get('max_mm'))}")
-        parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {_num(s.get('cv_rmse_mm'))}, "
-                     f"predicted residual RMS {_num(s.get('predicted_residual_rms_mm'))}")
-    return " · ".join(_e(p) for p in parts)
+        parts.append(f"measured deviation: RMS {num(s.get('rms_mm'))}, max {num(s.get('max_mm'))}")
+        parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {num(s.get('cv_rmse_mm'))}, "
+                     f"predicted residual RMS {num(s.get('predicted_residual_rms_mm'))}")
+    return " · ".join(esc(p) for p in parts)
 
 
 def _summary_section(result) -> str:
     s = result.summary
     cols = result.spec.cols
-    cv = _num(s.get("cv_rmse_mm"))
+    cv = num(s.get("cv_rmse_mm"))
     if s.get("cv_rmse_std_mm") is not None:
-        cv += f" ± {_num(s.get('cv_rmse_std_mm'))}"
+        cv += f" ± {num(s.get('cv_rmse_std_mm'))}"
     rows = [
-        ("fiducials expected", _num(s.get("n_expected"), ""), f"{result.spec.rows} × {cols} grid, "
-         f"pitch {_num(result.spec.pitch_mm)}"),
-        ("fiducials detected", _num(s.get("n_detected"), ""), ""),
-        ("missing ids", _e(", ".join(str(i) for i in s.get("missing_ids", [])) or "none"), "id = row · cols + col"),
-        ("deviation RMS |δ|", _num(s.get("rms_mm")), "full field"),
-        ("deviation max |δ|", _num(s.get("max_mm")), "full field"),
-        ("deviation RMS x", _num(s.get("rms_x_mm")), ""),
-        ("deviation RMS y", _num(s.get("rms_y_mm")), ""),
+        ("fiducials expected", num(s.get("n_expected"), ""), f"{result.spec.rows} × {cols} grid, "
+         f"pitch {num(result.spec.pitch_mm)}"),
+        ("fiducials detected", num(s.get("n_detected"), ""), ""),
+        ("missing ids", esc(", ".join(str(i) for i in s.get("missing_ids", [])) or "none"), "id = row · cols + col"),
+        ("deviation RMS |δ|", num(s.get("rms_mm")), "full field"),
+        ("deviation max |δ|", num(s.get("max_mm")), "full field"),
+        ("deviation RMS x", num(s.get("rms_x_mm")), ""),
+        ("deviation RMS y", num(s.get("rms_y_mm")), ""),
         ("CV RMSE of the correction model", cv, f"{result.options.folds}-fold, mean ± std over folds"),
-        ("neurons", _num(s.get("n_neurons"), ""), "Gaussian RBF centres"),
-        ("spread σ", _num(s.get("spread_mm")), "chosen by cross-validation"),
+        ("neurons", num(s.get("n_neurons"), ""), "Gaussian RBF centres"),
+        ("spread σ", num(s.get("spread_mm")), "chosen by cross-validation"),
         ("MSE goal", f"{float(s.get('mse_goal_mm2', np.nan)):.1e} mm²", "chosen by cross-validation"),
-        ("plate tilt", _num(s.get("plate_tilt_deg"), "°"), "plate normal vs scanner z"),
-        ("in-plane rotation", _num(s.get("in_plane_rotation_deg"), "°"), "scanner frame → galvo frame"),
-        ("plane fit RMS", _num(s.get("plane_rms_mm")), f"inlier fraction {_num(s.get('plane_inlier_fraction'), '')}"),
-        ("points in cloud", _num(s.get("n_points"), ""), ""),
-        ("runtime", _num(s.get("runtime_s"), "s"), "whole scan flow"),
-        ("RBF training", _num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
+        ("plate tilt", num(s.get("plate_tilt_deg"), "°"), "plate normal vs scanner z"),
+        ("in-plane rotation", num(s.get("in_plane_rotation_deg"), "°"), "scanner frame → galvo frame"),
+        ("plane fit RMS", num(s.get("plane_rms_mm")), f"inlier fraction {num(s.get('plane_inlier_fraction'), '')}"),
+        ("points in cloud", num(s.get("n_points"), ""), ""),
+        ("runtime", num(s.get("runtime_s"), "s"), "whole scan flow"),
+        ("RBF training", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
     ]
-    out = ["<h2>Summary</h2>", _table(["quantity", "value", "note"], rows, left_cols=1)]
+    out = ["<h2>Summary</h2>", table(["quantity", "value", "note"], rows, left_cols=1)]
     if result.missing_ids:
         items = []
         for i in result.missing_ids:
             r, c = _rowcol(i, cols)
             items.append(f"id {i} (row {r}, col {c})")
-        out.append(f'<div class="note">not detected: {_e("; ".join(items))}</div>')
+        out.append(f'<div class="note">not detected: {esc("; ".join(items))}</div>')
     return "\n".join(out)
 
 
@@ -116,7 +108,7 @@ def _quiver_figure(result) -> str:
     mag = np.hypot(dx, dy)
     mmax = float(mag.max()) if len(mag) else 0.0
     k = _arrow_scale(mmax, spec.pitch_mm)
-    fig = _fig(7.6, 6.6)
+    fig = new_figure(7.6, 6.6)
     ax = fig.add_subplot(111)
     ax.scatter(x, y, s=36, facecolors="none", edgecolors="0.6", linewidths=0.8, zorder=1)
     q = ax.quiver(x, y, dx, dy, mag, angles="xy", scale_units="xy", scale=1.0 / k, cmap="viridis",
@@ -143,7 +135,7 @@ def _quiver_figure(result) -> str:
            f"coloured by |δ|. <b>Arrows magnified {k:g}×</b> (an arrow of length L mm on the plot is a "
            f"deviation of L/{k:g} mm; key arrow {key:g} mm). Red crosses: fiducials not detected. "
            f"(Paper Fig. 7.)")
-    return _img(_png_b64(fig), "deviation quiver plot", cap)
+    return img(png_b64(fig), "deviation quiver plot", cap)
 
 
 def _bins(v: np.ndarray) -> int:
@@ -154,7 +146,7 @@ def _histogram_figures(result) -> str:
     f = result.fiducials
     dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
     mag = np.hypot(dx, dy)
-    fig = _fig(11.0, 3.2)
+    fig = new_figure(11.0, 3.2)
     for i, (v, lab, col) in enumerate(((dx, "δx (mm)", "#3b7dd8"), (dy, "δy (mm)", "#e07b39"),
                                        (mag, "|δ| (mm)", "#4c9a4c"))):
         ax = fig.add_subplot(1, 3, i + 1)
@@ -165,11 +157,11 @@ def _histogram_figures(result) -> str:
         ax.set_ylabel("fiducials")
         ax.grid(alpha=0.25)
     fig.tight_layout()
-    out = [_img(_png_b64(fig), "deviation histograms",
+    out = [img(png_b64(fig), "deviation histograms",
                 "Histograms of the deviation components δx, δy and of |δ| (mm); dashed line: mean. "
                 "(Paper Fig. 8.)")]
 
-    fig = _fig(6.0, 3.6)
+    fig = new_figure(6.0, 3.6)
     ax = fig.add_subplot(111)
     if len(mag):
         srt = np.sort(mag)
@@ -189,9 +181,9 @@ def _histogram_figures(result) -> str:
     ax.set_xlabel("|δ| (mm)")
     ax.set_ylabel("cumulative fraction of fiducials")
     ax.grid(alpha=0.25)
-    out.append(_img(_png_b64(fig), "cumulative histogram",
+    out.append(img(png_b64(fig), "cumulative histogram",
                     f"Cumulative histogram of |δ|; dashed red line: the 80 % level, reached at "
-                    f"{_e(_num(out_p80))}. (Paper Fig. 9.)"))
+                    f"{esc(num(out_p80))}. (Paper Fig. 9.)"))
     return "\n".join(out)
 
 
@@ -200,8 +192,8 @@ def _stats_table(stats: dict) -> str:
     rows = []
     for name, st in stats.items():
         st = st or {}
-        vals = ["–"] * 6 if not st.get("n") else [_num(st.get(k), "") for k in keys]
-        rows.append([_e(AREA_LABELS.get(name, name)), _num(st.get("n", 0), "")] + vals)
+        vals = ["–"] * 6 if not st.get("n") else [num(st.get(k), "") for k in keys]
+        rows.append([esc(AREA_LABELS.get(name, name)), num(st.get("n", 0), "")] + vals)
     head = ("<tr><th class='l' rowspan='2'>area</th><th rowspan='2'>n</th>"
             "<th colspan='3'>max (mm)</th><th colspan='3'>RMS (mm)</th></tr>"
             "<tr><th>u<sub>x</sub></th><th>u<sub>y</sub></th><th>|δ|</th>"
@@ -215,14 +207,14 @@ def _stats_table(stats: dict) -> str:
 
 
 def _cv_figure(sel) -> str:
-    table = np.asarray(sel.table, float)
+    cv_table = np.asarray(sel.table, float)
     spreads = np.asarray(sel.spreads_mm, float)
     goals = np.asarray(sel.goals_mm2, float)
-    fig = _fig(7.4, 0.45 * len(spreads) + 1.6)
+    fig = new_figure(7.4, 0.45 * len(spreads) + 1.6)
     ax = fig.add_subplot(111)
-    good = table[np.isfinite(table) & (table > 0)]
+    good = cv_table[np.isfinite(cv_table) & (cv_table > 0)]
     norm = LogNorm(vmin=good.min(), vmax=good.max()) if len(good) and good.max() > good.min() else None
-    im = ax.imshow(table, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
+    im = ax.imshow(cv_table, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
     cb = fig.colorbar(im, ax=ax, pad=0.02)
     cb.set_label("mean CV RMSE (mm)")
     ax.set_xticks(range(len(goals)))
@@ -233,26 +225,26 @@ def _cv_figure(sel) -> str:
     ax.set_ylabel("spread σ (mm)")
     if len(good):
         thr = np.sqrt(good.min() * good.max())
-        for i in range(table.shape[0]):
-            for j in range(table.shape[1]):
-                v = table[i, j]
+        for i in range(cv_table.shape[0]):
+            for j in range(cv_table.shape[1]):
+                v = cv_table[i, j]
                 if np.isfinite(v):
                     ax.text(j, i, f"{v * 1000:.1f}", ha="center", va="center", fontsize=7,
                             color="white" if v > thr else "black")
     bi = int(np.argmin(np.abs(spreads - sel.spread_mm)))
     bj = int(np.argmin(np.abs(np.log(goals) - np.log(sel.mse_goal_mm2))))
     ax.add_patch(Rectangle((bj - 0.5, bi - 0.5), 1, 1, fill=False, edgecolor="red", lw=2.2))
-    return _img(_png_b64(fig), "cross-validation grid",
+    return img(png_b64(fig), "cross-validation grid",
                 f"Mean cross-validated RMSE over the (spread, MSE goal) grid; numbers in µm. "
-                f"Red box: the chosen cell (σ = {_num(sel.spread_mm)}, goal {sel.mse_goal_mm2:.0e} mm², "
-                f"CV RMSE {_num(sel.cv_rmse_mm)} ± {_num(sel.cv_rmse_std_mm)}).")
+                f"Red box: the chosen cell (σ = {num(sel.spread_mm)}, goal {sel.mse_goal_mm2:.0e} mm², "
+                f"CV RMSE {num(sel.cv_rmse_mm)} ± {num(sel.cv_rmse_std_mm)}).")
 
 
 def _field_figure(result) -> str:
     xy = np.asarray(result.grid_xy_mm, float)
     d = np.asarray(result.grid_dxy_mm, float)
     mag = np.hypot(d[:, 0], d[:, 1])
-    fig = _fig(6.6, 5.6)
+    fig = new_figure(6.6, 5.6)
     ax = fig.add_subplot(111)
     grid = GridCorrection.from_nodes(xy, d)
     xs, ys = grid.x_mm, grid.y_mm
@@ -279,7 +271,7 @@ def _field_figure(result) -> str:
     ax.set_aspect("equal")
     ax.set_xlabel("wanted x (mm)")
     ax.set_ylabel("wanted y (mm)")
-    return _img(_png_b64(fig), "correction field",
+    return img(png_b64(fig), "correction field",
                 f"Correction field of the RBF model: command offset K − Q over the correction grid "
                 f"({len(xy):,} nodes, colour = magnitude in mm); arrows show the offset at {len(pick)} "
                 f"subsampled nodes, <b>magnified {k:g}×</b> (key arrow {key:g} mm).")
@@ -308,22 +300,22 @@ def _model_section(result) -> str:
     sel = result.selection
     out = ["<h2>Correction model</h2>",
            f"<p>Gaussian RBF network with <b>{int(result.model.n_neurons)} neurons</b>, spread σ = "
-           f"{_e(_num(sel.spread_mm))}, MSE goal {sel.mse_goal_mm2:.0e} mm², trained by orthogonal least "
+           f"{esc(num(sel.spread_mm))}, MSE goal {sel.mse_goal_mm2:.0e} mm², trained by orthogonal least "
            f"squares on the measured positions P → Q − P.</p>",
            _cv_figure(sel)]
     edge = _cv_edge_note(sel)
     if edge:
-        out.append(f'<div class="warn">{_e(edge)}</div>')
+        out.append(f'<div class="warn">{esc(edge)}</div>')
     out.append(_field_figure(result))
     pr = result.predicted or {}
     rows = []
     for key, lab in (("inverse", "markcal: fitted inverse map (wanted Q → command K)"),
                      ("eq9", "paper eq. 9: K = Q + δ̂(Q)")):
         st = pr.get(key) or {}
-        rows.append([_e(lab), _num(st.get("rms_mm"), "") if st.get("n") else "–",
-                     _num(st.get("max_mm"), "") if st.get("n") else "–"])
+        rows.append([esc(lab), num(st.get("rms_mm"), "") if st.get("n") else "–",
+                     num(st.get("max_mm"), "") if st.get("n") else "–"])
     out.append("<h3>Predicted residual after correction</h3>")
-    out.append(_table(["method", "RMS |δ| (mm)", "max |δ| (mm)"], rows))
+    out.append(table(["method", "RMS |δ| (mm)", "max |δ| (mm)"], rows))
     out.append("<p>Both values are estimates: the landing position of each corrected command is "
                "predicted with the fitted forward model (nominal → landing error) on the correction grid "
                "inside the fiducial field. Eq. 9 (K = Q + δ̂(Q)) is only first order, because the machine "
@@ -343,17 +335,17 @@ def _render_3d(result) -> str:
             raise ValueError("no preview points")
         quiet = pv.vtk_verbosity("error") if hasattr(pv, "vtk_verbosity") else contextlib.nullcontext()
         with quiet:
-            img = _screenshot(pv, result, xyz, inten)
+            shot = _screenshot(pv, result, xyz, inten)
         buf = io.BytesIO()
-        imsave(buf, np.asarray(img), format="png")
+        imsave(buf, np.asarray(shot), format="png")
         b64 = base64.b64encode(buf.getvalue()).decode("ascii")
-        return _img(b64, "point cloud",
+        return img(b64, "point cloud",
                     f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
                     f"grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
-                    f"(60 mm long); tilt {_e(_num(result.summary.get('plate_tilt_deg'), '°'))}.")
+                    f"(60 mm long); tilt {esc(num(result.summary.get('plate_tilt_deg'), '°'))}.")
     except Exception as exc:  # noqa: BLE001 - any render failure becomes a note
         reason = f"{type(exc).__name__}: {exc}".strip()
-        return f'<div class="warn">3D render unavailable: {_e(reason[:300])}</div>'
+        return f'<div class="warn">3D render unavailable: {esc(reason[:300])}</div>'
 
 
 def _screenshot(pv, result, xyz, inten) -> np.ndarray:
@@ -386,16 +378,16 @@ def _fiducial_uv(result, i: int) -> np.ndarray:
     return np.array([r @ np.asarray(result.plane.e_u, float), r @ np.asarray(result.plane.e_v, float)])
 
 
-def _crop(img, raster, uv, half_mm):
-    """Slice of ``img`` around ``uv`` and its imshow extent (mm)."""
+def _crop(image, raster, uv, half_mm):
+    """Slice of ``image`` around ``uv`` and its imshow extent (mm)."""
     pix = raster.pixel_mm
     cr = raster.to_pixel(np.array([[uv[0] - half_mm, uv[1] - half_mm], [uv[0] + half_mm, uv[1] + half_mm]]))
-    c0 = int(np.clip(np.floor(cr[0, 0] + 0.5), 0, img.shape[1]))
-    c1 = int(np.clip(np.ceil(cr[1, 0] + 0.5), 0, img.shape[1]))
-    r0 = int(np.clip(np.floor(cr[0, 1] + 0.5), 0, img.shape[0]))
-    r1 = int(np.clip(np.ceil(cr[1, 1] + 0.5), 0, img.shape[0]))
+    c0 = int(np.clip(np.floor(cr[0, 0] + 0.5), 0, image.shape[1]))
+    c1 = int(np.clip(np.ceil(cr[1, 0] + 0.5), 0, image.shape[1]))
+    r0 = int(np.clip(np.floor(cr[0, 1] + 0.5), 0, image.shape[0]))
+    r1 = int(np.clip(np.ceil(cr[1, 1] + 0.5), 0, image.shape[0]))
     ext = (raster.u0_mm + c0 * pix, raster.u0_mm + c1 * pix, raster.v0_mm + r0 * pix, raster.v0_mm + r1 * pix)
-    return img[r0:r1, c0:c1], ext, (r0, r1, c0, c1)
+    return image[r0:r1, c0:c1], ext, (r0, r1, c0, c1)
 
 
 def _fiducial_crops(result) -> str:
@@ -412,7 +404,7 @@ def _fiducial_crops(result) -> str:
     raster, edges = result.raster, result.edges
     radii = tuple(result.spec.ring_radii_mm)
     half = max(4.0, 1.2 * max(radii))
-    fig = _fig(13.0, 3.5 * len(picks))
+    fig = new_figure(13.0, 3.5 * len(picks))
     for k, (i, why) in enumerate(picks):
         uv = _fiducial_uv(result, i)
         scale = float(f["ring_radius_scale"][i])
@@ -454,7 +446,7 @@ def _fiducial_crops(result) -> str:
                 ax.set_title(name, fontsize=9)
     fig.tight_layout()
     radii_txt = ", ".join(f"{x:g}" for x in radii)
-    return _img(_png_b64(fig), "fiducial crops",
+    return img(png_b64(fig), "fiducial crops",
                 f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(picks)} detected "
                 f"fiducial(s) with the fitted rings (red, dashed on the grey images; spec radii {radii_txt} mm "
                 f"× fitted radius scale) and the fitted centre (blue cross). Left to right: raster intensity, "
