@@ -34,9 +34,7 @@ def cmd_render_selfcal(args) -> int:
     from markcal.reports.files import atomic_write_text, write_csv, write_json
     from markcal.stages.errors import MarkcalError
 
-    if args.n < 3 or args.n % 2 == 0:
-        raise MarkcalError(f"--n must be odd and at least 3 (got {args.n})")
-    if args.k < 4 or args.k % 4:
+    if args.k < 4:      # n, pitch and k's divisibility are checked by SelfcalSetup
         raise MarkcalError(f"--k must be a positive multiple of 4 (got {args.k})")
     if args.repeats < 1 or args.noise_xy_um < 0 or args.noise_theta_deg < 0:
         raise MarkcalError("--repeats must be >= 1 and the noise levels >= 0")

@@ -102,15 +102,8 @@ def read_selfcal_setup(path):
         setup = SelfcalSetup(n=n, pitch_mm=float(d["pitch_mm"]), k=k, views=views)
     except (TypeError, ValueError) as exc:
         raise MarkcalError(f"bad value: {exc}", path) from None
-    if setup.n < 3 or setup.n % 2 == 0:
-        raise MarkcalError(f"n must be odd and at least 3 (got {setup.n}): the plate origin is the centre mark", path)
-    if setup.pitch_mm <= 0:
-        raise MarkcalError("pitch_mm must be positive", path)
-    if setup.k < 0 or setup.k % 4:
-        raise MarkcalError(f"k must be a multiple of 4 (got {setup.k}): view 1 turns the plate by K/4 lines", path)
-    bad = [v for v in setup.views if v not in (0, 1, 2, 3)]
-    if bad or len(set(setup.views)) != len(setup.views):
-        raise MarkcalError(f"views must be distinct values of 0, 1, 2, 3 (got {list(setup.views)})", path)
+    except MarkcalError as exc:
+        raise exc.with_path(path) from None
     return setup
 
 

@@ -78,6 +78,16 @@ class SelfcalSetup:
     k: int = 24
     views: tuple = (0, 1, 2, 3)
 
+    def __post_init__(self):
+        if self.n < 3 or self.n % 2 == 0:
+            raise MarkcalError(f"n must be odd and at least 3 (got {self.n}): the plate origin is the centre mark")
+        if not self.pitch_mm > 0:
+            raise MarkcalError("pitch_mm must be positive")
+        if self.k < 0 or self.k % 4:
+            raise MarkcalError(f"k must be a multiple of 4 (got {self.k}): view 1 turns the plate by K/4 lines")
+        if any(v not in (0, 1, 2, 3) for v in self.views) or len(set(self.views)) != len(self.views):
+            raise MarkcalError(f"views must be distinct values of 0, 1, 2, 3 (got {list(self.views)})")
+
     @property
     def half(self) -> int:
         return (self.n - 1) // 2
@@ -213,9 +223,9 @@ def linear_terms(setup: SelfcalSetup, gx_um: np.ndarray, gy_um: np.ndarray) -> t
 class _Layout:
     """Unknown vector layout: G (2S), A (2S), per view φ (and t for grid views), Gθ (K), Aθ (K)."""
 
-    def __init__(self, setup: SelfcalSetup, grid_views, angle_views):
-        self.S = setup.n * setup.n
-        self.K = setup.k
+    def __init__(self, n_sites: int, n_lines: int, grid_views, angle_views):
+        self.S = n_sites
+        self.K = n_lines
         nxt = 4 * self.S
         self.phi, self.t = {}, {}
         for v in sorted(set(grid_views) | set(angle_views)):
@@ -403,14 +413,11 @@ def solve_selfcal(setup: SelfcalSetup, grid: GridViews, angle: AngleViews | None
     -------
     SelfcalSolution
     """
-    if setup.n < 3 or setup.n % 2 == 0:
-        raise MarkcalError(f"n must be odd and at least 3 (got {setup.n})")
-    if angle is not None and (setup.k < 4 or setup.k % 4):
+    if angle is not None and setup.k < 4:
         raise MarkcalError(f"k must be a positive multiple of 4 (got {setup.k})")
     notes = _check_inputs(setup, grid, angle)
     av = sorted(set(np.unique(angle.view).tolist())) if angle is not None else []
-    lay = _Layout(setup if angle is not None else SelfcalSetup(setup.n, setup.pitch_mm, 0, setup.views),
-                  GRID_VIEWS, av)
+    lay = _Layout(setup.n * setup.n, setup.k if angle is not None else 0, GRID_VIEWS, av)
     gauge = _gauge(setup, lay)
     x_hat = np.zeros(lay.size)
     w_th = 1.0
