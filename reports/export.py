@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from markcal.stages.ctable import centred_nodes, check_range
 from markcal.stages.deviation import GridCorrection
 from markcal.stages.errors import MarkcalError
 
@@ -90,7 +91,6 @@ def encode_cor(table: GridCorrection, units_per_mm: float, opts: CorOptions = Co
     s = -1.0 if opts.sign == "subtract" else 1.0
     dx = np.rint(s * table.dx_mm * units_per_mm)
     dy = np.rint(s * table.dy_mm * units_per_mm)
-    from markcal.stages.ctable import check_range
     check_range(np.r_[dx.ravel(), dy.ravel()], -0x7FFF, 0x7FFF, ".cor entry", "galvo units")
     if opts.outer == "x":
         dx, dy = dx.T, dy.T
@@ -112,7 +112,6 @@ def decode_cor(data: bytes, opts: CorOptions = CorOptions(), path=None) -> tuple
     s = -1.0 if opts.sign == "subtract" else 1.0
     dx = _entries_to_xy(pairs[:, 0].reshape(COR_NODES, COR_NODES), opts.outer) * s / scale
     dy = _entries_to_xy(pairs[:, 1].reshape(COR_NODES, COR_NODES), opts.outer) * s / scale
-    from markcal.stages.ctable import centred_nodes
     nodes = centred_nodes(COR_NODES, opts.node_spacing_units, scale)
     return GridCorrection(nodes, nodes.copy(), dx.astype(float), dy.astype(float)), float(scale)
 
@@ -150,7 +149,6 @@ def encode_ctb(table: GridCorrection, bits_per_mm: float, opts: CtbOptions = Ctb
     base_y = gy * bits_per_mm if opts.content == "absolute" else 0.0
     vx = np.rint(32767.5 + base_x + table.dx_mm * bits_per_mm)
     vy = np.rint(32767.5 + base_y + table.dy_mm * bits_per_mm)
-    from markcal.stages.ctable import check_range
     check_range(np.r_[vx.ravel(), vy.ravel()], 0, 65535, ".ctb entry", "bits")
     return vx.astype("<u2").tobytes() + vy.astype("<u2").tobytes()
 
@@ -160,7 +158,6 @@ def decode_ctb(data: bytes, bits_per_mm: float, opts: CtbOptions = CtbOptions(),
     if len(data) != CTB_SIZE:
         raise MarkcalError(f"not an RTC4 .ctb table ({len(data)} bytes; expected {CTB_SIZE})", path)
     v = np.frombuffer(data, "<u2").astype(float).reshape(2, COR_NODES, COR_NODES) - 32767.5
-    from markcal.stages.ctable import centred_nodes
     nodes = centred_nodes(COR_NODES, opts.node_spacing_bits, bits_per_mm)
     gx, gy = np.meshgrid(nodes, nodes)
     if opts.content == "absolute":
