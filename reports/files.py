@@ -30,6 +30,20 @@ def atomic_write_text(path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def start_outputs(out_dir) -> str:
+    """Create ``out_dir`` and remove an old ``summary.json``; return its path.
+
+    Every flow writes ``summary.json`` last, so a folder whose summary exists is
+    complete; removing the old one first keeps a half-rewritten folder from
+    looking complete.
+    """
+    os.makedirs(out_dir, exist_ok=True)
+    path = os.path.join(out_dir, "summary.json")
+    if os.path.exists(path):
+        os.unlink(path)
+    return path
+
+
 def _fmt(v):
     if isinstance(v, (float, np.floating)):
         return repr(float(v)) if np.isfinite(v) else ""

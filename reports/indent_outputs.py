@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from .files import atomic_write_text, write_csv, write_json
+from .files import atomic_write_text, start_outputs, write_csv, write_json
 
 #: indents.csv: the issue's columns first, then file, kind, nominal and fit quality
 INDENT_COLUMNS = ("id", "row", "col", "x_um", "y_um", "dx_um", "dy_um", "diameter_um", "diag1_um", "diag2_um",
@@ -23,10 +23,8 @@ def write_indent_outputs(result, out_dir, report: bool = True) -> dict:
     dict
         Output name -> path.
     """
-    os.makedirs(out_dir, exist_ok=True)
+    start_outputs(out_dir)
     p = {n: os.path.join(out_dir, n) for n in ("indents.csv", "sizes.csv", "report.html", "summary.json")}
-    if os.path.exists(p["summary.json"]):
-        os.unlink(p["summary.json"])          # an old summary must not vouch for new files
     t = result.indents
     cols = {k: t[k] for k in INDENT_COLUMNS}
     for k in ("row", "col"):

@@ -10,7 +10,7 @@ import numpy as np
 
 from markcal.stages.errors import MarkcalError
 
-from .files import atomic_write_text, write_json
+from .files import atomic_write_text, start_outputs, write_json
 
 
 def ordered_csv_text(result) -> str:
@@ -64,15 +64,13 @@ def write_path_outputs(result, out_dir, report: bool = True) -> dict:
     dict
         Output name -> path.
     """
-    os.makedirs(out_dir, exist_ok=True)
     ordered = "ordered.csv" if result.inp.fmt == "csv" else "ordered.json"
     p = {name: os.path.join(out_dir, name) for name in (ordered, "report.html", "summary.json")}
     src = os.path.abspath(result.source)
     for name, path in p.items():
         if os.path.abspath(path) == src:
             raise MarkcalError(f"--out would overwrite the input job ({name})", result.source)
-    if os.path.exists(p["summary.json"]):
-        os.unlink(p["summary.json"])          # an old summary must not vouch for new files
+    start_outputs(out_dir)
     if result.inp.fmt == "csv":
         atomic_write_text(p[ordered], ordered_csv_text(result))
     else:

@@ -11,7 +11,7 @@ import numpy as np
 
 from markcal.pipeline.flows.drift import DriftResult
 from markcal.pipeline.flows.pmcal import COMPARED, PmcalResult
-from markcal.reports.files import atomic_write_text, write_csv, write_json
+from markcal.reports.files import atomic_write_text, start_outputs, write_csv, write_json
 from markcal.stages.pm_fit import TOLERANCES_UM, WEIGHTS
 from markcal.stages.pm_model import model_to_dict
 
@@ -65,7 +65,7 @@ def residuals_table(result: PmcalResult) -> dict:
 
 def write_pmcal_outputs(result: PmcalResult, out_dir, report: bool = True) -> dict:
     """Write all pmcal outputs atomically; ``summary.json`` last. Returns name -> path."""
-    os.makedirs(out_dir, exist_ok=True)
+    start_outputs(out_dir)
     paths = {}
 
     def put(name, writer, obj):
@@ -86,7 +86,7 @@ def write_pmcal_outputs(result: PmcalResult, out_dir, report: bool = True) -> di
 
 def write_drift_outputs(result: DriftResult, out_dir, report: bool = True) -> dict:
     """Write compensation.csv (chosen method), drift_methods.csv, report.html, summary.json (last)."""
-    os.makedirs(out_dir, exist_ok=True)
+    start_outputs(out_dir)
     paths = {}
     c = result.comp_um[result.method]
     p = os.path.join(out_dir, "compensation.csv")

@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 
-from .files import write_csv, write_json, atomic_write_text
+from .files import atomic_write_text, start_outputs, write_csv, write_json
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
                     "x_scanner_mm", "y_scanner_mm", "z_scanner_mm", "ring_radius_scale", "line_width_mm",
@@ -24,8 +24,7 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     p = {name: os.path.join(out_dir, name) for name in (
         "fiducials.csv", "deviations.csv", "correction_grid.csv", "corrected_targets.csv",
         "model.json", "report.html", "summary.json")}
-    if os.path.exists(p["summary.json"]):
-        os.unlink(p["summary.json"])      # an old summary must not vouch for new files
+    start_outputs(out_dir)
     f = result.fiducials
     write_csv(p["fiducials.csv"], {k: f[k] for k in FIDUCIAL_COLUMNS})
     mag = np.hypot(f["dx_mm"], f["dy_mm"])

@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 
-from markcal.reports.files import atomic_write_text, write_csv, write_json
+from markcal.reports.files import atomic_write_text, start_outputs, write_csv, write_json
 from markcal.stages.selfcal import site_xy_mm
 
 __all__ = ["write_selfcal_outputs", "DATA_FILES"]
@@ -21,10 +21,7 @@ DATA_FILES = (
 
 def write_selfcal_outputs(result, out_dir, report: bool = True) -> dict:
     """Write the tables, ``report.html`` and (last) ``summary.json``; return name -> path."""
-    os.makedirs(out_dir, exist_ok=True)
-    summary_path = os.path.join(out_dir, "summary.json")
-    if os.path.exists(summary_path):      # a half-rewritten folder must not look complete
-        os.unlink(summary_path)
+    summary_path = start_outputs(out_dir)
     setup, sol = result.setup, result.solution
     M = setup.half
     m, n = np.meshgrid(np.arange(-M, M + 1), np.arange(-M, M + 1), indexing="ij")

@@ -6,7 +6,7 @@ import os
 import numpy as np
 
 from markcal.pipeline.flows.servo import METRIC_COLUMNS, ServoResult
-from markcal.reports.files import write_csv, write_json
+from markcal.reports.files import start_outputs, write_csv, write_json
 
 #: traces.csv columns
 TRACE_COLUMNS = ("case", "controller", "amplitude_mm", "frequency_hz", "t_s", "ref_mm", "pos_mm", "err_um")
@@ -43,7 +43,7 @@ def traces_table(result: ServoResult, max_points: int = 1000) -> dict:
 
 def write_servo_outputs(result: ServoResult, out_dir, report: bool = True) -> dict:
     """Write all outputs atomically; ``summary.json`` last. Returns name -> path."""
-    os.makedirs(out_dir, exist_ok=True)
+    start_outputs(out_dir)
     paths = {}
     p = os.path.join(out_dir, "metrics.csv")
     write_csv(p, metrics_table(result))
