@@ -8,7 +8,16 @@ import numpy as np
 
 from markcal.stages.errors import MarkcalError
 
-__all__ = ["read_table"]
+__all__ = ["read_table", "check_increasing"]
+
+
+def check_increasing(values: np.ndarray, name: str, path) -> None:
+    """Refuse a column (read by :func:`read_table`) that does not strictly increase; name the lines."""
+    bad = np.flatnonzero(np.diff(values) <= 0)
+    if len(bad):
+        i = int(bad[0])
+        raise MarkcalError(f"out of time order: line {i + 3} has {name} = {values[i + 1]:g} after "
+                           f"{values[i]:g} on line {i + 2} (times must increase)", path)
 
 
 def read_table(path, columns, int_columns=(), key=None) -> dict:

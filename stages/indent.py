@@ -477,15 +477,18 @@ def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> n
     return np.maximum(out, 1e-6 * max(float(img.max()), 1.0))
 
 
-def detect_dots(img: np.ndarray, pixel_um: float, min_diameter_um: float = 0.4) -> tuple:
+def detect_dots(img: np.ndarray, pixel_um: float, min_diameter_um: float = 0.4,
+                background: np.ndarray | None = None) -> tuple:
     """Dark compact dots in a micrograph.
+
+    ``background`` is :func:`om_background` of ``img`` when the caller has it already.
 
     Returns
     -------
     list of (row, col, radius_px), float
         Candidates (centroid of the dark area, px) and the relative noise level.
     """
-    rel = img / om_background(img, pixel_um) - 1.0
+    rel = img / (om_background(img, pixel_um) if background is None else background) - 1.0
     d = np.diff(rel, axis=1)
     sigma = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2))
     rs = ndimage.gaussian_filter(rel, 1.0)

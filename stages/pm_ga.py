@@ -26,7 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from markcal.stages.pm_fit import SessionData, coarse_start, residual_parts_m, terms_from_parts, theta_from_model
+from markcal.stages.pm_fit import (SessionData, _k_matrix_batch, _tip_pm_batch, coarse_start, residual_parts_m,
+                                   terms_from_parts, theta_from_model)
 from markcal.stages.pm_model import STRAIGHTNESS_REF_UM, K_PAIRS, PMModel, gram_schmidt, rotvec_to_matrix, shear_matrix
 
 __all__ = ["GAOptions", "GAResult", "run_ga", "decode"]
@@ -76,14 +77,8 @@ def _linear_solve(a, d: SessionData, r):
     sol = np.linalg.solve(np.matmul(dm.transpose(0, 2, 1), dm), np.matmul(dm.transpose(0, 2, 1), y[..., None]))[..., 0]
     eps, k, o = sol[:, 0:3] / STRAIGHTNESS_REF_UM, sol[:, 3:9], sol[:, 9:12]
     m_mat = a * (1.0 + eps[:, None, :])
-    km = np.zeros((p_n, 3, 3))
-    for idx, (i, j) in enumerate(K_PAIRS):
-        km[:, i, j] = k[:, idx]
-
-    def tip(cc):
-        return (np.matmul(cc, m_mat.transpose(0, 2, 1)) + np.matmul((cc / STRAIGHTNESS_REF_UM) ** 2, km.transpose(0, 2, 1))
-                + o[:, None, :])
-    pp = tip(d.c_pose)
+    km = _k_matrix_batch(k)
+    pp = _tip_pm_batch(m_mat, km, o, d.c_pose)
     if r is None:  # eq. 4 by least squares (batched Kabsch), as the paper estimates R and T
         h = np.matmul((pp - pp.mean(1, keepdims=True)).transpose(0, 2, 1), d.x_om - d.x_om.mean(0))
         u, _, vt = np.linalg.svd(h)
@@ -93,7 +88,7 @@ def _linear_solve(a, d: SessionData, r):
         r = np.matmul(vt.transpose(0, 2, 1) * dd[:, None, :], u.transpose(0, 2, 1))
     rp = np.matmul(pp, r.transpose(0, 2, 1))
     t = np.mean(d.x_om[None] - rp, axis=1)
-    xq = np.matmul(tip(d.c_probe), r.transpose(0, 2, 1)) + t[:, None, :]
+    xq = np.matmul(_tip_pm_batch(m_mat, km, o, d.c_probe), r.transpose(0, 2, 1)) + t[:, None, :]
     g = np.stack([xq[..., 0], xq[..., 1], np.ones(xq.shape[:2])], -1)
     plane = np.linalg.solve(np.matmul(g.transpose(0, 2, 1), g), np.matmul(g.transpose(0, 2, 1), xq[..., 2:3]))[..., 0]
     return eps, k, o, r, t, plane

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from markcal.pipeline.tables import read_table
+from markcal.pipeline.tables import check_increasing, read_table
 from markcal.stages.drift import METHODS, compensate, in_force, reduction_rate, sample_reduction_rate
 from markcal.stages.errors import MarkcalError
 
@@ -40,11 +40,7 @@ def read_drift(path) -> tuple:
     """drift.csv -> (t_min (K,), meas_um (K, 3)); times must increase, ≥ 3 samples."""
     t = read_table(path, ("t_min", "dx_um", "dy_um", "dz_um"))
     tm = t["t_min"]
-    bad = np.flatnonzero(np.diff(tm) <= 0)
-    if len(bad):
-        i = int(bad[0])
-        raise MarkcalError(f"out of time order: line {i + 3} has t_min = {tm[i + 1]:g} after {tm[i]:g} on "
-                           f"line {i + 2} (times must increase)", path)
+    check_increasing(tm, "t_min", path)
     if len(tm) < 3:
         raise MarkcalError(f"{len(tm)} samples: need at least 3", path)
     return tm, np.column_stack([t["dx_um"], t["dy_um"], t["dz_um"]])

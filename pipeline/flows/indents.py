@@ -203,7 +203,7 @@ def _measure(img: Image, spec, opt, say, t0):
     else:
         say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
         bg = ind.om_background(img.data, px)
-        cands, sig = ind.detect_dots(img.data, px)
+        cands, sig = ind.detect_dots(img.data, px, background=bg)
         say(f"{name}: fitting {len(cands)} candidates")
         # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
         # does not describe comes back as None

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from markcal.pipeline.tables import read_table
+from markcal.pipeline.tables import check_increasing, read_table
 from markcal.stages import indent as ind
 from markcal.stages.image_io import read_image
 from markcal.stages.errors import MarkcalError
-from markcal.stages.pm_fit import SessionData, error_terms, fit_lsq, model_from_theta, residual_parts
+from markcal.stages.pm_fit import SessionData, fit_lsq, model_from_theta, residual_parts, terms_from_parts
 from markcal.stages.pm_ga import GAOptions, run_ga
 from markcal.stages.pm_model import PMModel, command_for_targets, landing_errors, model_from_dict, model_to_dict
 
@@ -144,7 +144,7 @@ def read_session(folder) -> tuple:
     p = os.path.join(folder, "drift.csv")
     if os.path.isfile(p):
         t = read_table(p, ("t_min", "dx_um", "dy_um", "dz_um"))
-        _check_time_order(t["t_min"], p)
+        check_increasing(t["t_min"], "t_min", p)
         drift = _xyz(t, ("dx_um", "dy_um", "dz_um"))
     else:
         warnings.append("no drift.csv: E_dyn is 0")
@@ -187,7 +187,7 @@ def _measure_marks(images: list, pixel_um: float) -> list:
     tiles, bgs, cands, sigs, x0 = [], [], [], [], 0
     for i, im in enumerate(images):
         bg = ind.om_background(im, pixel_um)
-        c, sig = ind.detect_dots(im, pixel_um)
+        c, sig = ind.detect_dots(im, pixel_um, background=bg)
         pad = ((0, h - im.shape[0]), (0, 0))
         tiles.append(np.pad(im, pad, mode="edge"))
         bgs.append(np.pad(bg, pad, mode="edge"))
@@ -262,14 +262,6 @@ def read_om_marks(folder) -> tuple:
     return c_pose, x_om, np.flatnonzero(keep) + 2, warnings
 
 
-def _check_time_order(t_min: np.ndarray, path) -> None:
-    bad = np.flatnonzero(np.diff(t_min) <= 0)
-    if len(bad):
-        i = int(bad[0])
-        raise MarkcalError(f"out of time order: line {i + 3} has t_min = {t_min[i + 1]:g} after "
-                           f"{t_min[i]:g} on line {i + 2} (times must increase)", path)
-
-
 def landing_check(true_model: PMModel, model: PMModel, n: int = 100, depth_um: float = 0.5, seed: int = 12345,
                   half_um: float = 20000.0) -> dict:
     """Land ``n`` random OM targets (within ±half_um) commanded through ``model`` on ``true_model``."""
@@ -321,8 +313,9 @@ def run_pmcal(folder, method: str = "ga+lsq", seed: int = 0, progress=None) -> P
     t_gl = time.perf_counter() - t0 + t_ga
     for name, th, sec in (("ga", ga.theta, t_ga), ("lsq", lsq.theta, t_lsq), ("ga+lsq", gl.theta, t_gl)):
         model = model_from_theta(th)
-        terms = {k: float(v[0]) for k, v in error_terms(th, data).items()}
-        ra, rp, rf, _, _ = residual_parts(th, data)
+        parts = residual_parts(th, data)
+        terms = {k: float(v[0]) for k, v in terms_from_parts(*parts, data).items()}
+        ra, rp, rf = parts[:3]
         te = _truth_errors(model, truth, true_model) if truth is not None else None
         fits[name] = MethodFit(name, th, model, terms, sec, (ra[0], rp[0], rf[0]), te)
     ch = fits[method]
