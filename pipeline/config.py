@@ -29,7 +29,7 @@ def check_sections(d: dict, allowed: dict, path) -> None:
             raise MarkcalError(f"unknown section [{sec}] (known: {', '.join(allowed)})", path)
         for k in keys:
             if k not in allowed[sec]:
-                raise MarkcalError(f"unknown key '{k}' in [{sec}]", path)
+                raise MarkcalError(f"unknown key '{k}' in [{sec}] (known: {', '.join(sorted(allowed[sec]))})", path)
 
 
 def read_plate_spec(path) -> PlateSpec:

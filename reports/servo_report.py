@@ -3,18 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.pipeline.flows.servo import PAPER_RC_M, PAPER_TABLE1, PAPER_TABLE2, ServoResult, find
+from markcal.pipeline.flows.servo import PAPER_RC_M, PAPER_TABLE1, PAPER_TABLE2, ServoResult, find, reduction_pct
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.servo_control import RepetitiveParams, closed_loop_poles, pid_frequency_response
 from markcal.stages.servo_plant import discretise, plant_frequency_response
 
 C_BASE, C_CCA, C_REF = "#d9342b", "#1f6fd1", "#444444"
-
-
-def _red(before, after):
-    if not (np.isfinite(before) and np.isfinite(after)) or before <= 0:
-        return float("nan")
-    return 100.0 * (1.0 - after / before)
 
 
 def _pct(v):
@@ -206,7 +200,7 @@ def _sim_parts(res):
     rows, whys = [], []
     for stroke in cfg.strokes_mm:
         b, c = find(res.runs, "step", "baseline", stroke), find(res.runs, "step", "cca", stroke)
-        ro, rs = _red(b.overshoot_um, c.overshoot_um), _red(b.settling_time_s, c.settling_time_s)
+        ro, rs = reduction_pct(b.overshoot_um, c.overshoot_um), reduction_pct(b.settling_time_s, c.settling_time_s)
         pp = PAPER_TABLE1.get(stroke)
         rows.append([f"{stroke:g}", f"{cfg.velocity_mm_s / 1e3:g}", f"{cfg.acceleration_mm_s2 / 1e3:g}",
                      num(b.overshoot_um, ""), num(c.overshoot_um, ""), _pct(ro), _pct(pp[2]) if pp else "–",
@@ -231,7 +225,7 @@ def _sim_parts(res):
     for amp in cfg.amplitudes_mm:
         for f in cfg.frequencies_hz:
             b, c = find(res.runs, "sine", "baseline", amp, f), find(res.runs, "sine", "cca", amp, f)
-            r = _red(b.std_um, c.std_um)
+            r = reduction_pct(b.std_um, c.std_um)
             pp = PAPER_TABLE2.get(f) if np.isclose(amp, 10.0) else None
             rows.append([f"{amp:g}", f"{f:g}", num(b.mae_um, ""), num(b.std_um, ""), num(c.mae_um, ""),
                          num(c.std_um, ""), _pct(r), _pct(pp[4]) if pp else "–"])

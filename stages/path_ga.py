@@ -19,10 +19,9 @@ import numpy as np
 from numba import njit
 
 from .path_job import POLYLINE, Job, Timing, Tour
-from .path_tour import LocalSearchOptions, best_entries, local_search, population_arrays, population_cost, \
-    population_points
+from .path_tour import population_arrays, population_cost, population_points
 
-__all__ = ["GAOptions", "GAResult", "run_ga", "ga_local_search", "order_crossover", "genes_to_tour"]
+__all__ = ["GAOptions", "GAResult", "run_ga", "order_crossover", "genes_to_tour"]
 
 
 @dataclass(frozen=True)
@@ -177,16 +176,3 @@ def run_ga(job: Job, timing: Timing, options: GAOptions | None = None, progress=
     tour = genes_to_tour(pop[best], job, arrays, timing)
     return GAResult(tour, float(cost[best]), np.array(curve), np.array(mean_curve), evals,
                     time.perf_counter() - t0)
-
-
-def ga_local_search(job: Job, timing: Timing, ga: GAOptions | None = None,
-                    ls: LocalSearchOptions | None = None, progress=None) -> tuple:
-    """The GA, then local search from its best tour.
-
-    Returns
-    -------
-    (GAResult, Tour)
-        The GA's own result and the improved tour.
-    """
-    res = run_ga(job, timing, ga, progress)
-    return res, local_search(job, best_entries(job, res.tour, timing), timing, ls)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from markcal.pipeline.config import load_toml
+from markcal.pipeline.config import check_sections, load_toml
 from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_control import PIDGains, RepetitiveParams, StabilityCheck, check_rc_stability
 from markcal.stages.servo_plant import PlantParams, discretise
@@ -101,13 +101,10 @@ def read_servo_config(path) -> ServoConfig:
     """
     path = os.fspath(path)
     d = load_toml(path, "config file")
+    check_sections(d, _SECTIONS, path)
     plant_kw, gain_kw, top_kw = {}, {}, {}
     for sec, keys in d.items():
-        if sec not in _SECTIONS or not isinstance(keys, dict):
-            raise MarkcalError(f"unknown section [{sec}] (known: {', '.join(_SECTIONS)})", path)
         for key, v in keys.items():
-            if key not in _SECTIONS[sec]:
-                raise MarkcalError(f"unknown key '{key}' in [{sec}] (known: {', '.join(_SECTIONS[sec])})", path)
             if sec == "plant":
                 plant_kw[key] = _num(v, sec, key, path)
             elif sec == "controller" and key in {f.name for f in fields(PIDGains)}:
@@ -223,7 +220,8 @@ def _sine_run(cfg, dp, amp, freq, ctrl, rc):
     return Run("sine", ctrl.name, float(amp), float(freq), float("nan"), float("nan"), mae, std, r, win)
 
 
-def _reduction(before, after):
+def reduction_pct(before, after):
+    """Reduction (%) from ``before`` to ``after``; NaN when either is missing or before <= 0."""
     if not (np.isfinite(before) and np.isfinite(after)) or before <= 0:
         return float("nan")
     return 100.0 * (1.0 - after / before)
@@ -280,8 +278,8 @@ def _sim_summary(cfg, runs, rc, check, paper) -> dict:
     for k in ("overshoot_um", "settling_time_s"):
         s[f"step_baseline_{k}"] = getattr(b, k)
         s[f"step_cca_{k}"] = getattr(c, k)
-    s["overshoot_reduction_pct"] = _reduction(b.overshoot_um, c.overshoot_um)
-    s["settling_reduction_pct"] = _reduction(b.settling_time_s, c.settling_time_s)
+    s["overshoot_reduction_pct"] = reduction_pct(b.overshoot_um, c.overshoot_um)
+    s["settling_reduction_pct"] = reduction_pct(b.settling_time_s, c.settling_time_s)
     amp = 10.0 if any(np.isclose(a, 10.0) for a in cfg.amplitudes_mm) else max(cfg.amplitudes_mm)
     s["sine_amplitude_mm"] = amp
     for f in cfg.frequencies_hz:
@@ -289,7 +287,7 @@ def _sim_summary(cfg, runs, rc, check, paper) -> dict:
         tag = f"{f:g}".replace(".", "p")
         s[f"std_baseline_{tag}hz_um"] = b.std_um
         s[f"std_cca_{tag}hz_um"] = c.std_um
-        s[f"std_reduction_{tag}hz_pct"] = _reduction(b.std_um, c.std_um)
+        s[f"std_reduction_{tag}hz_pct"] = reduction_pct(b.std_um, c.std_um)
     return s
 
 
