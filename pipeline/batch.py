@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from typing import Callable
 
 from markcal.pipeline.config import load_toml
+from markcal.reports.files import start_outputs
 from markcal.stages.errors import MarkcalError
 
 #: file names written in OUT_DIR itself (not per-input folders)
@@ -193,9 +194,6 @@ OPTIONAL_FLOWS: dict = {}
 
 
 def _indents_entry() -> FlowEntry:
-    import markcal.pipeline.flows.indents  # noqa: F401
-    import markcal.reports.indent_outputs  # noqa: F401
-
     def claims(path):
         return _ext(path) in (".tif", ".tiff", ".gsf", ".gwy", ".ibw")
 
@@ -220,9 +218,6 @@ def _indents_entry() -> FlowEntry:
 
 
 def _path_entry() -> FlowEntry:
-    import markcal.pipeline.flows.path  # noqa: F401
-    import markcal.reports.path_outputs  # noqa: F401
-
     def claims(path):
         if _ext(path) == ".csv":             # a point job: x_mm,y_mm[,...] without z
             h = _csv_header(path)
@@ -254,7 +249,6 @@ def _path_entry() -> FlowEntry:
 
 def _pmcal_entry() -> FlowEntry:
     from markcal.pipeline.flows.pmcal import SESSION_FILES
-    import markcal.reports.pmcal_outputs  # noqa: F401
 
     def claims(path):
         return os.path.isdir(path) and sum(os.path.isfile(os.path.join(path, f)) for f in SESSION_FILES[:3]) >= 2
@@ -519,10 +513,7 @@ def run_job(job: dict) -> dict:
         if entry.needs_spec and not job.get("spec"):
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
-        os.makedirs(job["out_dir"], exist_ok=True)
-        s = os.path.join(job["out_dir"], "summary.json")
-        if os.path.exists(s):
-            os.unlink(s)
+        start_outputs(job["out_dir"])     # a failure now must not leave an old summary vouching
         summary = entry.run(job)
         return make_record(job, summary, runtime_s=time.perf_counter() - t0)
     except Exception as exc:  # noqa: BLE001  failure isolation: every error becomes a one-line reason

@@ -42,7 +42,7 @@ def cmd_path(args) -> int:
 def cmd_render_path(args) -> int:
     from markcal.fixtures.path_jobs import render_job
     from markcal.pipeline.cli import progress
-    from markcal.reports.files import atomic_write_text, write_json
+    from markcal.reports.files import write_csv, write_json
 
     say = progress(args.quiet)
     if args.n is not None and args.n < 1:
@@ -56,8 +56,8 @@ def cmd_render_path(args) -> int:
     say(f"rendering a {args.kind} job, seed {args.seed}: {job.n} strokes")
     if fmt == "csv":
         path = os.path.join(args.out, "job.csv")
-        rows = "".join(f"{float(s.xy_mm[0, 0])!r},{float(s.xy_mm[0, 1])!r}\n" for s in job.strokes)
-        atomic_write_text(path, "x_mm,y_mm\n" + rows)
+        write_csv(path, {"x_mm": [float(s.xy_mm[0, 0]) for s in job.strokes],
+                         "y_mm": [float(s.xy_mm[0, 1]) for s in job.strokes]})
     else:
         path = os.path.join(args.out, "job.json")
         write_json(path, {"units": "mm", "name": f"markcal render path --kind {args.kind} --seed {args.seed}",

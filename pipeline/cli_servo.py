@@ -42,9 +42,7 @@ def cmd_servo(args) -> int:
 
 
 def cmd_render_servo(args) -> int:
-    import numpy as np
-
-    from markcal.fixtures.servo_trace import TraceOptions, render_servo_trace
+    from markcal.fixtures.servo_trace import TraceOptions, render_servo_trace, trace_columns
     from markcal.pipeline.cli import progress
     from markcal.reports.files import write_csv, write_json
 
@@ -55,8 +53,7 @@ def cmd_render_servo(args) -> int:
     say(f"rendering a {args.kind} trace ({args.controller}), seed {args.seed}")
     r = render_servo_trace(args.seed, opts)
     os.makedirs(args.out, exist_ok=True)
-    write_csv(os.path.join(args.out, "trace.csv"),
-              {"t_s": np.round(r.t_s, 9), "ref_mm": r.ref_mm, "pos_mm": np.round(r.pos_mm, 7)})
+    write_csv(os.path.join(args.out, "trace.csv"), trace_columns(r))
     write_json(os.path.join(args.out, "truth.json"), r.truth)
     print(os.path.abspath(args.out))
     return 0

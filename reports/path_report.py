@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.collections import LineCollection
 
+from markcal.pipeline.flows.path import pct_less
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.path_job import tour_points
 
@@ -84,8 +85,8 @@ def _methods_table(res):
     base = s["input"]
     rows = []
     for name, st in s.items():
-        red = 100 * (1 - st["jump_length_mm"] / base["jump_length_mm"]) if base["jump_length_mm"] > 0 else 0.0
-        tred = 100 * (1 - st["time_s"] / base["time_s"]) if base["time_s"] > 0 else 0.0
+        red = pct_less(st["jump_length_mm"], base["jump_length_mm"])
+        tred = pct_less(st["time_s"], base["time_s"])
         chosen = " <b>(written)</b>" if name == res.method_used else ""
         rows.append([esc(LABELS[name]) + chosen, num(st["jump_length_mm"]), f"{red:.1f} %",
                      num(st["jump_time_s"], "s"), num(st["time_s"], "s"), f"{tred:.1f} %",

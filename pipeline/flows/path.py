@@ -271,7 +271,8 @@ def _run(inp: PathInput, source: str, opt: PathOptions, method: str, say, t0) ->
     return PathResult(source, inp, opt, used, tours, stats, rt, ga, dups, notes, summary)
 
 
-def _pct(new, old):
+def pct_less(new, old):
+    """How much smaller ``new`` is than ``old``, in % (0 when ``old`` is 0)."""
     return float(100.0 * (1.0 - new / old)) if old > 0 else 0.0
 
 
@@ -290,10 +291,10 @@ def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime
         "mark_speed_mm_s": tm.mark_speed_mm_s, "point_dwell_s": tm.point_dwell_s, "seed": opt.seed,
         "jump_length_mm": s["jump_length_mm"], "jump_time_s": s["jump_time_s"],
         "mark_time_s": s["mark_time_s"], "time_s": s["time_s"],
-        "length_reduction_vs_input_pct": _pct(s["jump_length_mm"], stats["input"]["jump_length_mm"]),
-        "length_reduction_vs_raster_pct": _pct(s["jump_length_mm"], stats["raster"]["jump_length_mm"]),
-        "length_reduction_vs_nn_pct": _pct(s["jump_length_mm"], stats["nn"]["jump_length_mm"]),
-        "time_reduction_vs_input_pct": _pct(s["time_s"], stats["input"]["time_s"]),
+        "length_reduction_vs_input_pct": pct_less(s["jump_length_mm"], stats["input"]["jump_length_mm"]),
+        "length_reduction_vs_raster_pct": pct_less(s["jump_length_mm"], stats["raster"]["jump_length_mm"]),
+        "length_reduction_vs_nn_pct": pct_less(s["jump_length_mm"], stats["nn"]["jump_length_mm"]),
+        "time_reduction_vs_input_pct": pct_less(s["time_s"], stats["input"]["time_s"]),
     }
     for name, st in stats.items():
         key = name.replace("+", "_")
@@ -305,7 +306,7 @@ def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime
                     "ga_crossover_p": opt.ga.crossover_p, "ga_mutation_p": opt.ga.mutation_p,
                     "ga_evaluations": ga.evaluations})
         if "ga+ls" in stats:
-            out["ga_ls_improvement_vs_ga_pct"] = _pct(stats["ga+ls"]["jump_length_mm"],
+            out["ga_ls_improvement_vs_ga_pct"] = pct_less(stats["ga+ls"]["jump_length_mm"],
                                                       stats["ga"]["jump_length_mm"])
     out["n_duplicate_strokes"] = int(sum(len(g) - 1 for g in dups))
     out["duplicate_strokes"] = [list(map(int, g)) for g in dups]

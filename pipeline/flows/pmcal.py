@@ -153,7 +153,7 @@ def read_session(folder) -> tuple:
 
 def _image_column(path, n) -> list:
     """The ``image`` column of marks.csv (file names, one per data line)."""
-    with open(path, newline="", encoding="utf-8") as fh:
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
     head = [h.strip() for h in rows[0]]
     if "image" not in head:
