@@ -83,7 +83,7 @@ def cmd_batch(args) -> int:
 
 def cmd_render_batch(args) -> int:
     from markcal.fixtures.batch_mix import MixOptions, render_batch_mix
-    from markcal.pipeline.cli import progress
+    from markcal.pipeline.progress import progress
 
     say = progress(args.quiet)
     opts = MixOptions(n_scan=args.scans, n_selfcal=args.sessions, n_servo=args.traces, n_broken=args.broken,

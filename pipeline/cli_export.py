@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli import progress
+from markcal.pipeline.progress import progress
 
 
 def _cor_ctb_options(args):

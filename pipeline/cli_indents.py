@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import sys
 
-from markcal.pipeline.cli import progress
+from markcal.pipeline.progress import progress
 
 
 def cmd_indents(args) -> int:

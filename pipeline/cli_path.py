@@ -7,7 +7,7 @@ from markcal.stages.errors import MarkcalError
 
 
 def cmd_path(args) -> int:
-    from markcal.pipeline.cli import progress
+    from markcal.pipeline.progress import progress
     from markcal.pipeline.flows.path import PathOptions, run_path
     from markcal.reports.path_outputs import write_path_outputs
     from markcal.stages.path_ga import GAOptions
@@ -41,7 +41,7 @@ def cmd_path(args) -> int:
 
 def cmd_render_path(args) -> int:
     from markcal.fixtures.path_jobs import render_job
-    from markcal.pipeline.cli import progress
+    from markcal.pipeline.progress import progress
     from markcal.reports.files import write_csv, write_json
 
     say = progress(args.quiet)

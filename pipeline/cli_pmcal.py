@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli import progress
+from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
 
 
@@ -19,14 +19,13 @@ def cmd_pmcal(args) -> int:
         raise MarkcalError(f"unexpected argument(s) after the session folder: {' '.join(args.extra)}")
     if args.depth_um is not None:
         raise MarkcalError("--depth-um belongs to 'markcal pmcal command'")
-    from markcal.pipeline.flows.pmcal import run_pmcal
-    from markcal.reports.pmcal_outputs import write_pmcal_outputs
+    from markcal.pipeline.registry import run_and_write
 
     say = progress(args.quiet)
-    res = run_pmcal(args.session, method=args.method, seed=args.seed, progress=say)
+    res, paths = run_and_write("pmcal", args.session, args.out, progress=say,
+                               options={"method": args.method, "seed": args.seed, "no_report": args.no_report})
     for w in res.warnings:
         say(f"warning: {w}")
-    paths = write_pmcal_outputs(res, args.out, report=not args.no_report)
     s = res.summary
     msg = (f"{res.method}: F {s['F']:.4f}; non-orthogonality {s['nonorth_xy_urad']:.1f}/{s['nonorth_xz_urad']:.1f}/"
            f"{s['nonorth_yz_urad']:.1f} µrad; residual RMS axes {s['axes_rms_um']:.4f}, pose {s['pose_rms_um']:.4f} µm")
@@ -57,7 +56,7 @@ def _cmd_command(args) -> int:
 
 def cmd_drift(args) -> int:
     from markcal.pipeline.flows.drift import run_drift
-    from markcal.reports.pmcal_outputs import write_drift_outputs
+    from markcal.reports.drift_outputs import write_drift_outputs
 
     say = progress(args.quiet)
     res = run_drift(args.drift, method=args.method, truth_path=args.truth, noise_um=args.noise_um, alpha=args.alpha)

@@ -3,17 +3,15 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli import progress
+from markcal.pipeline.progress import progress
 
 
 def cmd_selfcal(args) -> int:
-    from markcal.pipeline.flows.selfcal import run_selfcal
-    from markcal.reports.selfcal_outputs import write_selfcal_outputs
+    from markcal.pipeline.registry import run_and_write
 
     say = progress(args.quiet)
-    res = run_selfcal(args.session, progress=say)
-    say("writing tables and report")
-    paths = write_selfcal_outputs(res, args.out, report=not args.no_report)
+    res, paths = run_and_write("selfcal", args.session, args.out, options={"no_report": args.no_report},
+                               progress=say)
     s = res.summary
     msg = (f"stage error RMS Gx {s['gx_rms_um']:.4f} µm, Gy {s['gy_rms_um']:.4f} µm (± {s['predicted_sd_gxy_um']:.4f}); "
            f"O {s['nonorthogonality_urad']:.3f} µrad, R {s['scale_difference_ppm']:.3f} ppm")
@@ -27,11 +25,7 @@ def cmd_selfcal(args) -> int:
 
 
 def cmd_render_selfcal(args) -> int:
-    import numpy as np
-
-    from markcal.fixtures.selfcal_stage import SelfcalOptions, render_selfcal
-    from markcal.pipeline.config import selfcal_setup_toml
-    from markcal.reports.files import atomic_write_text, write_csv, write_json
+    from markcal.fixtures.selfcal_stage import SelfcalOptions, render_selfcal, save_selfcal_session
     from markcal.stages.errors import MarkcalError
 
     if args.k < 4:      # n, pitch and k's divisibility are checked by SelfcalSetup
@@ -43,15 +37,7 @@ def cmd_render_selfcal(args) -> int:
                           noise_theta_deg=args.noise_theta_deg, repeats=args.repeats,
                           missing_marks=args.missing_marks)
     say(f"rendering a {args.n} x {args.n} self-calibration session, K = {args.k}, seed {args.seed}")
-    r = render_selfcal(args.seed, opts)
-    os.makedirs(args.out, exist_ok=True)
-    g, a = r.grid, r.angle
-    write_csv(os.path.join(args.out, "grid_views.csv"),
-              {"view": g.view, "m": g.m, "n": g.n, "vx_um": g.vx_um, "vy_um": g.vy_um})
-    write_csv(os.path.join(args.out, "angle_views.csv"),
-              {"view": a.view, "k": a.k, "vtheta_deg": np.asarray(a.vtheta_deg)})
-    atomic_write_text(os.path.join(args.out, "setup.toml"), selfcal_setup_toml(r.setup))
-    write_json(os.path.join(args.out, "truth.json"), r.truth)
+    save_selfcal_session(args.out, render_selfcal(args.seed, opts))
     print(os.path.abspath(args.out))
     return 0
 

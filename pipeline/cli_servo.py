@@ -7,8 +7,10 @@ from markcal.stages.errors import MarkcalError
 
 
 def cmd_servo(args) -> int:
-    from markcal.pipeline.cli import progress
-    from markcal.pipeline.flows.servo import read_servo_config, run_servo, run_servo_trace
+    from markcal.pipeline.progress import progress
+    from markcal.pipeline.config import read_servo_config
+    from markcal.pipeline.flows.servo import run_servo
+    from markcal.pipeline.registry import run_and_write
     from markcal.reports.servo_outputs import write_servo_outputs
 
     say = progress(args.quiet)
@@ -18,18 +20,19 @@ def cmd_servo(args) -> int:
         band = args.settle_band_um if args.settle_band_um is not None else 1.0
         if not band > 0:
             raise MarkcalError(f"--settle-band-um must be positive (got {band})")
-        res = run_servo_trace(args.trace, band_um=band, progress=say)
+        res, paths = run_and_write("servo", args.trace, args.out, progress=say,
+                                   options={"settle_band_um": band, "no_report": args.no_report})
     else:
         from dataclasses import replace
 
-        from markcal.pipeline.flows.servo import ServoConfig
+        from markcal.stages.servo_cases import ServoConfig
         cfg = read_servo_config(args.config) if args.config else ServoConfig()
         if args.settle_band_um is not None:
             cfg = replace(cfg, settle_band_um=args.settle_band_um)
         res = run_servo(cfg, source=os.path.abspath(args.config) if args.config else "paper defaults (no config)",
                         progress=say)
-    say("writing tables and report")
-    paths = write_servo_outputs(res, args.out, report=not args.no_report)
+        say("writing tables and report")
+        paths = write_servo_outputs(res, args.out, report=not args.no_report)
     s = res.summary
     if res.mode == "simulation":
         say(f"{s['step_stroke_mm']:g} mm move: overshoot reduction {s['overshoot_reduction_pct']:.1f} %, settling "
@@ -42,9 +45,8 @@ def cmd_servo(args) -> int:
 
 
 def cmd_render_servo(args) -> int:
-    from markcal.fixtures.servo_trace import TraceOptions, render_servo_trace, trace_columns
-    from markcal.pipeline.cli import progress
-    from markcal.reports.files import write_csv, write_json
+    from markcal.fixtures.servo_trace import TraceOptions, render_servo_trace, save_servo_trace
+    from markcal.pipeline.progress import progress
 
     say = progress(args.quiet)
     opts = TraceOptions(kind=args.kind, controller=args.controller, stroke_mm=args.stroke_mm,
@@ -53,8 +55,7 @@ def cmd_render_servo(args) -> int:
     say(f"rendering a {args.kind} trace ({args.controller}), seed {args.seed}")
     r = render_servo_trace(args.seed, opts)
     os.makedirs(args.out, exist_ok=True)
-    write_csv(os.path.join(args.out, "trace.csv"), trace_columns(r))
-    write_json(os.path.join(args.out, "truth.json"), r.truth)
+    save_servo_trace(os.path.join(args.out, "trace.csv"), r, os.path.join(args.out, "truth.json"))
     print(os.path.abspath(args.out))
     return 0
 

@@ -1,8 +1,16 @@
-"""Reading and writing plate specs (PLATE.toml)."""
+"""Every spec and config file markcal reads, through one strict declarative schema.
+
+A schema maps section -> key -> :class:`Key` (section ``""`` holds top-level
+keys). :func:`read_config` refuses unknown sections and keys (listing the known
+ones), wrong types, values out of range and missing required keys, each with
+one line naming the file; it returns every key with its default filled in.
+"""
 from __future__ import annotations
 
+import math
 import os
 import tomllib
+from dataclasses import dataclass, fields, replace
 
 from markcal.stages.errors import MarkcalError
 from markcal.stages.plate import PlateSpec
@@ -22,97 +30,255 @@ def load_toml(path, what: str = "config file") -> dict:
         raise MarkcalError(f"cannot read ({exc})", path) from None
 
 
+@dataclass(frozen=True)
+class Key:
+    """One key of a config file.
+
+    Attributes
+    ----------
+    type : str
+        ``float``, ``int``, ``bool``, ``str``, ``floats`` or ``ints`` (non-empty lists).
+    default : object
+        Value when the key is absent (ignored when ``required``).
+    required : bool
+        The key must be given.
+    min, max : float, optional
+        Inclusive bounds of a number (of every element of a list).
+    positive : bool
+        The number must be > 0 (finite).
+    choices : tuple
+        Allowed values of a ``str``.
+    also : tuple
+        Literal values accepted besides the type (e.g. ``"auto"``).
+    unit : str
+        Unit of the value, for messages and documentation.
+    """
+
+    type: str
+    default: object = None
+    required: bool = False
+    min: float | None = None
+    max: float | None = None
+    positive: bool = False
+    choices: tuple = ()
+    also: tuple = ()
+    unit: str = ""
+
+
+def _where(sec: str, key: str) -> str:
+    return f"[{sec}] {key}" if sec else key
+
+
+def _number(v, is_int: bool, spec: Key, where: str, path):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or (is_int and not isinstance(v, int)):
+        raise MarkcalError(f"{where} must be {'a whole number' if is_int else 'a number'} (got {v!r})", path)
+    if not math.isfinite(v):
+        raise MarkcalError(f"{where} must be finite (got {v!r})", path)
+    unit = f" {spec.unit}" if spec.unit else ""
+    if spec.positive and not v > 0:
+        raise MarkcalError(f"{where} must be positive (got {v!r}{unit})", path)
+    if spec.min is not None and v < spec.min:
+        raise MarkcalError(f"{where} must be at least {spec.min:g}{unit} (got {v!r})", path)
+    if spec.max is not None and v > spec.max:
+        raise MarkcalError(f"{where} must be at most {spec.max:g}{unit} (got {v!r})", path)
+    return int(v) if is_int else float(v)
+
+
+def _value(v, spec: Key, sec: str, key: str, path):
+    where = _where(sec, key)
+    if spec.also and v in spec.also and not isinstance(v, bool):
+        return v
+    t = spec.type
+    if t in ("float", "int"):
+        return _number(v, t == "int", spec, where, path)
+    if t in ("floats", "ints"):
+        if not isinstance(v, list) or not v:
+            raise MarkcalError(f"{where} must be a non-empty list of numbers", path)
+        return tuple(_number(x, t == "ints", spec, where, path) for x in v)
+    if t == "any":
+        return v
+    if t == "bool":
+        if not isinstance(v, bool):
+            raise MarkcalError(f"{where} must be true or false (got {v!r})", path)
+        return v
+    if t == "str":
+        if not isinstance(v, str):
+            raise MarkcalError(f"{where} must be a string (got {v!r})", path)
+        if spec.choices and v not in spec.choices:
+            raise MarkcalError(f"{where} must be one of {', '.join(spec.choices)} (got {v!r})", path)
+        return v
+    raise ValueError(f"unknown schema type {t!r}")
+
+
+def parse_config(d: dict, schema: dict, path) -> dict:
+    """Check a loaded TOML dict against ``schema``; return section -> key -> value, defaults filled."""
+    top = schema.get("", {})
+    out = {sec: {k: spec.default for k, spec in keys.items()} for sec, keys in schema.items()}
+    for name, v in d.items():
+        if name in top:
+            out[""][name] = _value(v, top[name], "", name, path)
+            continue
+        if name not in schema or name == "" or not isinstance(v, dict):
+            if top and name not in schema:
+                raise MarkcalError(f"unknown key '{name}' (known: {', '.join(sorted(top))})", path)
+            raise MarkcalError(f"unknown section [{name}] (known: {', '.join(s for s in schema if s)})", path)
+        keys = schema[name]
+        for k, kv in v.items():
+            if k not in keys:
+                raise MarkcalError(f"unknown key '{k}' in [{name}] (known: {', '.join(sorted(keys))})", path)
+            out[name][k] = _value(kv, keys[k], name, k, path)
+    for sec, keys in schema.items():
+        given = d if sec == "" else d.get(sec, {})
+        for k, spec in keys.items():
+            if spec.required and k not in given:
+                raise MarkcalError(f"missing key '{k}'" + (f" in [{sec}]" if sec else ""), path)
+    return out
+
+
 def check_sections(d: dict, allowed: dict, path) -> None:
-    """Refuse sections and keys not in ``allowed`` (section -> set of keys): typos must not pass silently."""
-    for sec, keys in d.items():
-        if sec not in allowed or not isinstance(keys, dict):
-            raise MarkcalError(f"unknown section [{sec}] (known: {', '.join(allowed)})", path)
-        for k in keys:
-            if k not in allowed[sec]:
-                raise MarkcalError(f"unknown key '{k}' in [{sec}] (known: {', '.join(sorted(allowed[sec]))})", path)
+    """Refuse sections and keys not in ``allowed`` (section -> set of keys), listing the known ones."""
+    parse_config(d, {sec: {k: Key("any") for k in keys} for sec, keys in allowed.items()}, path)
+
+
+def read_config(path, schema: dict, what: str = "config file") -> dict:
+    """Load a TOML file and check it against ``schema`` (see :func:`parse_config`)."""
+    path = os.fspath(path)
+    return parse_config(load_toml(path, what), schema, path)
+
+
+# ------------------------------------------------------------------ plate spec (scan)
+
+_DEFAULT_PLATE = PlateSpec()
+PLATE_SCHEMA = {
+    "grid": {"rows": Key("int", _DEFAULT_PLATE.rows, min=3), "cols": Key("int", _DEFAULT_PLATE.cols, min=3),
+             "pitch_mm": Key("float", _DEFAULT_PLATE.pitch_mm, positive=True, unit="mm")},
+    "fiducial": {"ring_radii_mm": Key("floats", _DEFAULT_PLATE.ring_radii_mm, positive=True, unit="mm")},
+    "galvo": {"d_mm": Key("float", _DEFAULT_PLATE.d_mm, positive=True, unit="mm"),
+              "e_mm": Key("float", _DEFAULT_PLATE.e_mm, min=0.0, unit="mm")},
+    "correction": {"grid_step_mm": Key("float", _DEFAULT_PLATE.grid_step_mm, positive=True, unit="mm")},
+}
 
 
 def read_plate_spec(path) -> PlateSpec:
-    """Read a PLATE.toml; unknown keys are an error so typos do not pass silently."""
+    """Read a PLATE.toml (``[grid] rows cols pitch_mm``, ``[fiducial] ring_radii_mm``,
+    ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``; lengths in mm)."""
     path = os.fspath(path)
-    d = load_toml(path, "plate spec")
-    allowed = {"grid": {"rows", "cols", "pitch_mm"}, "fiducial": {"ring_radii_mm"},
-               "galvo": {"d_mm", "e_mm"}, "correction": {"grid_step_mm"}}
-    check_sections(d, allowed, path)
-    g, f = d.get("grid", {}), d.get("fiducial", {})
-    gv, c = d.get("galvo", {}), d.get("correction", {})
-    default = PlateSpec()
-    try:
-        spec = PlateSpec(
-            rows=int(g.get("rows", default.rows)), cols=int(g.get("cols", default.cols)),
-            pitch_mm=float(g.get("pitch_mm", default.pitch_mm)),
-            ring_radii_mm=tuple(float(r) for r in f.get("ring_radii_mm", default.ring_radii_mm)),
-            d_mm=float(gv.get("d_mm", default.d_mm)), e_mm=float(gv.get("e_mm", default.e_mm)),
-            grid_step_mm=float(c.get("grid_step_mm", default.grid_step_mm)))
-    except (TypeError, ValueError) as exc:
-        raise MarkcalError(f"bad value: {exc}", path) from None
-    if spec.rows < 3 or spec.cols < 3:
-        raise MarkcalError("grid needs at least 3 rows and 3 columns", path)
-    if spec.pitch_mm <= 0 or spec.grid_step_mm <= 0 or spec.d_mm <= 0 or spec.e_mm < 0:
-        raise MarkcalError("pitch_mm, grid_step_mm and d_mm must be positive, e_mm non-negative", path)
-    if not spec.ring_radii_mm or min(spec.ring_radii_mm) <= 0 or 2 * max(spec.ring_radii_mm) >= spec.pitch_mm:
+    c = read_config(path, PLATE_SCHEMA, "plate spec")
+    spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"])
+    if 2 * max(spec.ring_radii_mm) >= spec.pitch_mm:
         raise MarkcalError("ring_radii_mm must be positive and the rings must fit inside the pitch", path)
     return spec
 
 
-def plate_spec_toml(spec: PlateSpec) -> str:
-    """The TOML text of a plate spec (as the renderer writes it)."""
-    radii = ", ".join(repr(float(r)) for r in spec.ring_radii_mm)
-    return (
-        "[grid]\n"
-        f"rows = {spec.rows}\n"
-        f"cols = {spec.cols}\n"
-        f"pitch_mm = {spec.pitch_mm!r}   # centre-to-centre, grid centred on the galvo origin\n"
-        "[fiducial]\n"
-        f"ring_radii_mm = [{radii}]\n"
-        "[galvo]\n"
-        f"d_mm = {spec.d_mm!r}   # X-mirror to the plane centre (paper 004 sec. 2.3)\n"
-        f"e_mm = {spec.e_mm!r}   # between the mirror axes\n"
-        "[correction]\n"
-        f"grid_step_mm = {spec.grid_step_mm!r}\n"
-    )
+# ------------------------------------------------------------------ selfcal setup
+
+SELFCAL_SCHEMA = {"": {"n": Key("int", required=True), "pitch_mm": Key("float", required=True, unit="mm"),
+                       "k": Key("int", 0), "views": Key("ints", (0, 1, 2, 3))}}
 
 
 def read_selfcal_setup(path):
-    """Read a self-calibration ``setup.toml``: ``n``, ``pitch_mm``, ``k``, ``views``.
-
-    Unknown keys are an error. ``k = 0`` (or no ``k``) means an XY-only session.
-    """
+    """Read a self-calibration ``setup.toml``: ``n``, ``pitch_mm``, ``k`` (0 = XY only), ``views``."""
     from markcal.stages.selfcal import SelfcalSetup
 
     path = os.fspath(path)
-    d = load_toml(path, "setup file")
-    allowed = {"n", "pitch_mm", "k", "views"}
-    for key in d:
-        if key not in allowed:
-            raise MarkcalError(f"unknown key '{key}' (expected {', '.join(sorted(allowed))})", path)
-    for key in ("n", "pitch_mm"):
-        if key not in d:
-            raise MarkcalError(f"missing key '{key}'", path)
+    c = read_config(path, SELFCAL_SCHEMA, "setup file")[""]
     try:
-        n, k = d["n"], d.get("k", 0)
-        if not isinstance(n, int) or not isinstance(k, int):
-            raise ValueError("n and k must be integers")
-        views = tuple(int(v) for v in d.get("views", [0, 1, 2, 3]))
-        setup = SelfcalSetup(n=n, pitch_mm=float(d["pitch_mm"]), k=k, views=views)
-    except (TypeError, ValueError) as exc:
-        raise MarkcalError(f"bad value: {exc}", path) from None
+        return SelfcalSetup(**c)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
-    return setup
 
 
-def selfcal_setup_toml(setup) -> str:
-    """The TOML text of a self-calibration setup (as the renderer writes it)."""
-    return (
-        f"n = {setup.n}              # sites per side (odd); m, n run from -(n-1)/2 to (n-1)/2\n"
-        f"pitch_mm = {setup.pitch_mm!r}     # site interval\n"
-        f"k = {setup.k}              # angular lines (multiple of 4; 0 = XY only)\n"
-        f"views = [{', '.join(str(v) for v in setup.views)}]   # 0 aligned, 1 turned +90 deg, "
-        "2 turned +360/k deg, 3 shifted one pitch along +X\n"
-    )
+# ------------------------------------------------------------------ servo simulation config
+
+def _servo_schema() -> dict:
+    from markcal.stages.servo_control import PIDGains
+    from markcal.stages.servo_cases import ServoConfig
+    from markcal.stages.servo_plant import PlantParams
+    c, g, p = ServoConfig(), PIDGains(), PlantParams()
+    num = lambda default, unit="": Key("float", default, unit=unit)  # noqa: E731
+    return {
+        "plant": {f.name: num(getattr(p, f.name)) for f in fields(PlantParams)},
+        "controller": {**{f.name: num(getattr(g, f.name)) for f in fields(PIDGains)},
+                       "u_max_v": num(c.u_max_v, "V"), "friction_v": num(c.friction_v, "V")},
+        "repetitive": {"tau": num(c.rc_tau), "kr": num(c.rc_kr), "m": Key("int", "auto", also=("auto",))},
+        "step": {"strokes_mm": Key("floats", c.strokes_mm, unit="mm"), "velocity_mm_s": num(c.velocity_mm_s),
+                 "acceleration_mm_s2": num(c.acceleration_mm_s2), "jerk_mm_s3": num(c.jerk_mm_s3),
+                 "dwell_s": num(c.dwell_s, "s")},
+        "sine": {"amplitudes_mm": Key("floats", c.amplitudes_mm, unit="mm"),
+                 "frequencies_hz": Key("floats", c.frequencies_hz, unit="Hz"), "periods": num(c.periods)},
+        "metrics": {"settle_band_um": num(c.settle_band_um, "µm")},
+    }
+
+
+def read_servo_config(path):
+    """Read a servo CONFIG.toml: ``[plant] [controller] [repetitive] [step] [sine] [metrics]``.
+
+    Missing keys take the paper's values; ``[repetitive] m`` is a whole number of
+    samples or ``"auto"``. The result is validated (physical, stable).
+    """
+    from markcal.stages.servo_control import PIDGains
+    from markcal.stages.servo_plant import PlantParams
+    from markcal.stages.servo_cases import ServoConfig, validate_config
+
+    path = os.fspath(path)
+    c = read_config(path, _servo_schema(), "config file")
+    gain_names = {f.name for f in fields(PIDGains)}
+    ctrl, rep = c["controller"], c["repetitive"]
+    cfg = ServoConfig(plant=replace(PlantParams(), **c["plant"]),
+                      gains=replace(PIDGains(), **{k: v for k, v in ctrl.items() if k in gain_names}),
+                      rc_tau=rep["tau"], rc_kr=rep["kr"], rc_m=None if rep["m"] == "auto" else rep["m"],
+                      u_max_v=ctrl["u_max_v"], friction_v=ctrl["friction_v"],
+                      **c["step"], **c["sine"], **c["metrics"])
+    try:
+        validate_config(cfg)
+    except MarkcalError as exc:
+        raise exc.with_path(path) from None
+    return cfg
+
+
+# ------------------------------------------------------------------ batch.toml
+
+def read_batch_config(path, flow_options: dict, flow_tolerances: dict) -> dict:
+    """Read batch.toml: ``[<flow>]`` option defaults and ``[<flow>.tolerance]`` limits.
+
+    Parameters
+    ----------
+    path : path or None
+        The file (None: the defaults).
+    flow_options, flow_tolerances : dict
+        Flow name -> default options / default ``max_<key>``/``min_<key>`` limits.
+
+    Returns
+    -------
+    dict
+        Flow name -> {"options": dict, "tolerances": dict}, defaults filled in.
+    """
+    cfg = {n: {"options": dict(o), "tolerances": dict(flow_tolerances.get(n, {}))} for n, o in flow_options.items()}
+    if path is None:
+        return cfg
+    path = os.fspath(path)
+    d = load_toml(path, "batch config")
+    for flow, sec in d.items():
+        if flow not in cfg or not isinstance(sec, dict):
+            raise MarkcalError(f"unknown flow [{flow}] (known: {', '.join(cfg)})", path)
+        tol = sec.get("tolerance", {})
+        if not isinstance(tol, dict):
+            raise MarkcalError(f"[{flow}.tolerance] must be a table", path)
+        for tk, tv in tol.items():
+            if not (tk.startswith("max_") or tk.startswith("min_")) or len(tk) < 5:
+                raise MarkcalError(f"tolerance '{tk}' in [{flow}.tolerance] must be max_<key> or min_<key>", path)
+            if isinstance(tv, bool) or not isinstance(tv, (int, float)):
+                raise MarkcalError(f"tolerance '{tk}' in [{flow}.tolerance] must be a number", path)
+            cfg[flow]["tolerances"][tk] = float(tv)
+        for k, v in sec.items():
+            if k == "tolerance":
+                continue
+            if k not in cfg[flow]["options"]:
+                raise MarkcalError(f"unknown option '{k}' in [{flow}] (known: {', '.join(flow_options[flow])}, "
+                                   "tolerance)", path)
+            default = flow_options[flow][k]
+            if type(v) is not type(default) and not (isinstance(default, float) and isinstance(v, int)
+                                                     and not isinstance(v, bool)):
+                raise MarkcalError(f"option '{k}' in [{flow}] must be {type(default).__name__}", path)
+            cfg[flow]["options"][k] = type(default)(v)
+    return cfg

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.stages.errors import MarkcalError
+from markcal.stages.errors import MarkcalError, one_line
 
 #: environment variables that cap the thread pools of BLAS, OpenMP (Open3D), numba
 THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS",
@@ -81,7 +81,6 @@ class LocalExecutor:
         from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
         from concurrent.futures.process import BrokenProcessPool
 
-        from markcal.pipeline.batch import one_line
 
         queue, suspects = deque(jobs), deque()
         crashes = {}
@@ -166,7 +165,6 @@ class DaskExecutor:
         """As :meth:`LocalExecutor.map_unordered`, on the cluster."""
         from dask.distributed import as_completed
 
-        from markcal.pipeline.batch import one_line
         futs = self.client.map(fn, jobs, pure=False, key=[f"markcal-{i}-{j['name']}" for i, j in enumerate(jobs)])
         byf = {f.key: j for f, j in zip(futs, jobs)}
         try:

@@ -8,7 +8,7 @@ import numpy as np
 
 from markcal.stages.errors import MarkcalError
 
-__all__ = ["read_table", "check_increasing"]
+__all__ = ["read_table", "check_increasing", "read_rbf_model"]
 
 
 def check_increasing(values: np.ndarray, name: str, path) -> None:
@@ -85,3 +85,16 @@ def read_table(path, columns, int_columns=(), key=None) -> dict:
             desc = ", ".join(f"{c}={v:g}" for c, v in zip(key, row))
             raise MarkcalError(f"duplicate rows for {desc} (lines {', '.join(map(str, dup))})", path)
     return out
+
+
+def read_rbf_model(path):
+    """Read the RBF correction model of a ``model.json`` written by the scan flow."""
+    import json
+
+    from markcal.stages.rbf import RBFModel
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise MarkcalError(f"cannot read model: {exc}", path) from None
+    return RBFModel.from_dict(d.get("model", d))

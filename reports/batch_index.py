@@ -15,7 +15,7 @@ import numpy as np
 from .files import atomic_write_text, write_csv, write_json
 from .html import esc, img, new_figure, num, page, png_b64
 
-__all__ = ["write_batch_index", "render_batch_index_html"]
+__all__ = ["write_batch_index", "batch_index_html"]
 
 STATUS_TEXT = {"pass": "pass", "fail": "out of tolerance", "done": "done (no tolerance)", "error": "failed to process"}
 
@@ -64,21 +64,20 @@ def _rel(path, out_dir):
     return os.path.relpath(path, out_dir).replace(os.sep, "/")
 
 
-def _main_figure(rec):
-    from markcal.pipeline.batch import FLOWS
-    e = FLOWS.get(rec["flow"])
+def _main_figure(rec, flows):
+    e = flows.get(rec["flow"])
     if e is None or not e.trends:
         return "", None
     k = e.trends[0][0]
     return k, rec.get(k)
 
 
-def _summary_table(records, out_dir) -> str:
+def _summary_table(records, flows, out_dir) -> str:
     head = ["input", "group", "flow", "status", "main figure", "value", "failed checks / reason", "report"]
     ths = "".join(f'<th class="s{" l" if i < 3 or i >= 6 else ""}">{h}</th>' for i, h in enumerate(head))
     rows = []
     for r in records:
-        k, v = _main_figure(r)
+        k, v = _main_figure(r, flows)
         link = (f'<a href="{esc(_rel(r["report"], out_dir))}">report</a>' if r["report"] else
                 (f'<a href="{esc(_rel(r["out_dir"], out_dir))}/summary.json">summary</a>'
                  if r["status"] != "error" else "–"))
@@ -93,9 +92,7 @@ def _summary_table(records, out_dir) -> str:
             f'<tbody>{"".join(rows)}</tbody></table>')
 
 
-def _flow_table(flow, records, out_dir) -> str:
-    from markcal.pipeline.batch import FLOWS
-    keys = list(FLOWS[flow].key_figures) if flow in FLOWS else []
+def _flow_table(keys, records, flow) -> str:
     head = ["input", "group", "status", "input time", *keys, "runtime, s", "reused"]
     ths = "".join(f'<th class="s{" l" if i < 2 else ""}">{esc(h)}</th>' for i, h in enumerate(head))
     rows = []
@@ -149,9 +146,8 @@ def _trend_plot(flow, key, label, records) -> str:
                "(sub-folder, e.g. the machine); dashed line = the pass/fail limit.")
 
 
-def render_batch_index_html(result, out_dir) -> str:
-    """The whole index page of a :class:`markcal.pipeline.batch.BatchResult`."""
-    from markcal.pipeline.batch import FLOWS
+def batch_index_html(result, out_dir) -> str:
+    """The whole index page of a batch result (``records``, ``flows``, counts; see ``pipeline/batch.py``)."""
     recs = result.records
     counts = "".join(f'<span class="st-{s}">{result.count(s)} {STATUS_TEXT[s]}</span>'
                      for s in ("pass", "fail", "done", "error"))
@@ -167,15 +163,14 @@ def render_batch_index_html(result, out_dir) -> str:
                  + "".join(f'<option value="{s}">{STATUS_TEXT[s]}</option>' for s in STATUS_TEXT)
                  + '</select> <span id="nshown"></span> rows shown; click a column header to sort</div>')
     parts.append("<h2>Summary</h2>")
-    parts.append(_summary_table(recs, out_dir))
-    flows = [f for f in FLOWS if any(r["flow"] == f for r in recs)]
-    for f in flows:
+    parts.append(_summary_table(recs, result.flows, out_dir))
+    for f, shown in result.flows.items():
         rs = [r for r in recs if r["flow"] == f]
         parts.append(f"<h2>{esc(f)}: key figures</h2>")
         checks = next((r["checks"] for r in rs if r["checks"]), "")
         parts.append(f"<p>tolerance: {esc(checks) if checks else 'none (status done)'}</p>")
-        parts.append(_flow_table(f, rs, out_dir))
-        for key, label in FLOWS[f].trends:
+        parts.append(_flow_table(list(shown.key_figures), rs, f))
+        for key, label in shown.trends:
             parts.append(_trend_plot(f, key, label, rs))
     if result.ignored:
         parts.append("<h2>Files not recognised</h2><p>No flow claims these files; they were not processed:</p><ul>"
@@ -195,13 +190,12 @@ def _csv_value(v):
 
 def write_batch_index(result, out_dir) -> dict:
     """Write summary.csv, index.html and (last) summary.json into ``out_dir``; return name -> path."""
-    from markcal.pipeline.batch import columns
     os.makedirs(out_dir, exist_ok=True)
     p = {n: os.path.join(out_dir, n) for n in ("summary.csv", "index.html", "summary.json")}
-    cols = columns(result.records)
+    cols = result.columns
     write_csv(p["summary.csv"], {c: np.array([_csv_value(r.get(c)) for r in result.records], dtype=object)
                                  for c in cols})
-    atomic_write_text(p["index.html"], render_batch_index_html(result, out_dir))
+    atomic_write_text(p["index.html"], batch_index_html(result, out_dir))
     write_json(p["summary.json"], {
         "n_inputs": len(result.records), "n_pass": result.count("pass"), "n_fail": result.count("fail"),
         "n_done": result.count("done"), "n_error": result.count("error"), "n_run": result.n_run,

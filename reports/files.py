@@ -44,6 +44,45 @@ def start_outputs(out_dir) -> str:
     return path
 
 
+class OutputFolder:
+    """One flow's output folder: each file written atomically and recorded; ``summary.json`` last.
+
+    Creating it removes an old ``summary.json`` (see :func:`start_outputs`);
+    :meth:`finish` writes the new one and returns output name -> path.
+    """
+
+    def __init__(self, out_dir):
+        self.out_dir = os.fspath(out_dir)
+        self.summary_path = start_outputs(self.out_dir)
+        self.paths = {}
+
+    def _path(self, name: str) -> str:
+        p = self.paths[name] = os.path.join(self.out_dir, name)
+        return p
+
+    def csv(self, name: str, columns: dict) -> None:
+        """A CSV table (dict of equal-length columns)."""
+        write_csv(self._path(name), columns)
+
+    def json(self, name: str, obj) -> None:
+        """A JSON file."""
+        write_json(self._path(name), obj)
+
+    def text(self, name: str, text: str) -> None:
+        """A text file (UTF-8), e.g. report.html."""
+        atomic_write_text(self._path(name), text)
+
+    def bytes(self, name: str, data: bytes) -> None:
+        """A binary file."""
+        atomic_write_bytes(self._path(name), data)
+
+    def finish(self, summary: dict) -> dict:
+        """Write ``summary.json`` (last); return output name -> path."""
+        write_json(self.summary_path, summary)
+        self.paths["summary.json"] = self.summary_path
+        return dict(self.paths)
+
+
 def _fmt(v):
     if isinstance(v, (float, np.floating)):
         return repr(float(v)) if np.isfinite(v) else ""

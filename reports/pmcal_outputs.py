@@ -1,25 +1,16 @@
-"""Files of the pmcal and drift flows (summary.json always last).
-
-pmcal: calibration.json, methods.csv, residuals.csv, ga_convergence.csv, report.html, summary.json.
-drift: compensation.csv, drift_methods.csv, report.html, summary.json.
-"""
+"""Files of the pmcal flow: calibration.json, methods.csv, residuals.csv, ga_convergence.csv,
+report.html, summary.json (always last)."""
 from __future__ import annotations
-
-import os
 
 import numpy as np
 
-from markcal.pipeline.flows.drift import DriftResult
 from markcal.pipeline.flows.pmcal import COMPARED, PmcalResult
-from markcal.reports.files import atomic_write_text, start_outputs, write_csv, write_json
+from markcal.reports.files import OutputFolder
+from markcal.reports.pmcal_report import pmcal_report_html
 from markcal.stages.pm_fit import TOLERANCES_UM, WEIGHTS
 from markcal.stages.pm_model import model_to_dict
 
-__all__ = ["calibration_dict", "methods_table", "residuals_table", "write_pmcal_outputs", "write_drift_outputs",
-           "COMPENSATION_COLUMNS"]
-
-#: compensation.csv columns
-COMPENSATION_COLUMNS = ("t_min", "cx_um", "cy_um", "cz_um")
+__all__ = ["calibration_dict", "methods_table", "residuals_table", "write_pmcal_outputs"]
 
 
 def calibration_dict(result: PmcalResult) -> dict:
@@ -65,50 +56,12 @@ def residuals_table(result: PmcalResult) -> dict:
 
 def write_pmcal_outputs(result: PmcalResult, out_dir, report: bool = True) -> dict:
     """Write all pmcal outputs atomically; ``summary.json`` last. Returns name -> path."""
-    start_outputs(out_dir)
-    paths = {}
-
-    def put(name, writer, obj):
-        p = os.path.join(out_dir, name)
-        writer(p, obj)
-        paths[name] = p
-    put("calibration.json", write_json, calibration_dict(result))
-    put("methods.csv", write_csv, methods_table(result))
-    put("residuals.csv", write_csv, residuals_table(result))
-    put("ga_convergence.csv", write_csv, {"generation": np.arange(1, len(result.ga_best_f) + 1),
-                                          "best_F": result.ga_best_f, "mean_F": result.ga_mean_f})
+    out = OutputFolder(out_dir)
+    out.json("calibration.json", calibration_dict(result))
+    out.csv("methods.csv", methods_table(result))
+    out.csv("residuals.csv", residuals_table(result))
+    out.csv("ga_convergence.csv", {"generation": np.arange(1, len(result.ga_best_f) + 1),
+                                   "best_F": result.ga_best_f, "mean_F": result.ga_mean_f})
     if report:
-        from markcal.reports.pmcal_report import pmcal_report_html
-        put("report.html", atomic_write_text, pmcal_report_html(result))
-    put("summary.json", write_json, result.summary)
-    return paths
-
-
-def write_drift_outputs(result: DriftResult, out_dir, report: bool = True) -> dict:
-    """Write compensation.csv (chosen method), drift_methods.csv, report.html, summary.json (last)."""
-    start_outputs(out_dir)
-    paths = {}
-    c = result.comp_um[result.method]
-    p = os.path.join(out_dir, "compensation.csv")
-    write_csv(p, {"t_min": result.t_min, "cx_um": c[:, 0], "cy_um": c[:, 1], "cz_um": c[:, 2]})
-    paths["compensation.csv"] = p
-    rows = {"method": [], "axis": [], "pre_samples_um": [], "post_samples_um": [], "eta_samples_pct": [],
-            "pre_true_um": [], "post_true_um": [], "eta_true_pct": []}
-    for name, e in result.eta.items():
-        for ax, a in enumerate("xyz"):
-            rows["method"].append(name)
-            rows["axis"].append(a)
-            for k in list(rows)[2:]:
-                rows[k].append(float(e[k][ax]) if k in e else None)
-    p = os.path.join(out_dir, "drift_methods.csv")
-    write_csv(p, rows)
-    paths["drift_methods.csv"] = p
-    if report:
-        from markcal.reports.drift_report import drift_report_html
-        p = os.path.join(out_dir, "report.html")
-        atomic_write_text(p, drift_report_html(result))
-        paths["report.html"] = p
-    p = os.path.join(out_dir, "summary.json")
-    write_json(p, result.summary)
-    paths["summary.json"] = p
-    return paths
+        out.text("report.html", pmcal_report_html(result))
+    return out.finish(result.summary)

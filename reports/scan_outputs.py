@@ -1,11 +1,10 @@
 """Files of the scan flow: CSV tables, model.json, summary.json, report.html."""
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
-from .files import atomic_write_text, start_outputs, write_csv, write_json
+from markcal.reports.files import OutputFolder
+from markcal.reports.scan_report import scan_report_html
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
                     "x_scanner_mm", "y_scanner_mm", "z_scanner_mm", "ring_radius_scale", "line_width_mm",
@@ -20,22 +19,18 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     dict
         Output name -> path.
     """
-    os.makedirs(out_dir, exist_ok=True)
-    p = {name: os.path.join(out_dir, name) for name in (
-        "fiducials.csv", "deviations.csv", "correction_grid.csv", "corrected_targets.csv",
-        "model.json", "report.html", "summary.json")}
-    start_outputs(out_dir)
+    out = OutputFolder(out_dir)
     f = result.fiducials
-    write_csv(p["fiducials.csv"], {k: f[k] for k in FIDUCIAL_COLUMNS})
+    out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
     mag = np.hypot(f["dx_mm"], f["dy_mm"])
-    write_csv(p["deviations.csv"], {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
-                                    "dx_mm": f["dx_mm"], "dy_mm": f["dy_mm"], "d_mm": mag})
-    write_csv(p["correction_grid.csv"], {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
-                                         "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
-    write_csv(p["corrected_targets.csv"], result.targets)
-    write_json(p["model.json"], {
+    out.csv("deviations.csv", {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
+                               "dx_mm": f["dx_mm"], "dy_mm": f["dy_mm"], "d_mm": mag})
+    out.csv("correction_grid.csv", {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
+                                    "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
+    out.csv("corrected_targets.csv", result.targets)
+    out.json("model.json", {
         "description": "Command offset for a wanted position in the GLS frame: the command for a target "
-                       "(x, y) is (x + dx, y + dy). Load with markcal.stages.rbf.load_model.",
+                       "(x, y) is (x + dx, y + dy). Load with markcal.pipeline.tables.read_rbf_model.",
         "input": "wanted position (x_mm, y_mm), GLS frame",
         "model": result.model.to_dict(),
         "selection": {"spread_mm": result.selection.spread_mm, "mse_goal_mm2": result.selection.mse_goal_mm2,
@@ -43,9 +38,5 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
         "galvo": {"d_mm": result.spec.d_mm, "e_mm": result.spec.e_mm},
     })
     if report:
-        from .scan_report import render_scan_report_html
-        atomic_write_text(p["report.html"], render_scan_report_html(result))
-    else:
-        p.pop("report.html")
-    write_json(p["summary.json"], result.summary)
-    return p
+        out.text("report.html", scan_report_html(result))
+    return out.finish(result.summary)

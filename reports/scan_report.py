@@ -24,7 +24,7 @@ from markcal.stages.deviation import GridCorrection
 if TYPE_CHECKING:  # pragma: no cover
     from markcal.pipeline.flows.scan import ScanResult
 
-__all__ = ["render_scan_report_html"]
+__all__ = ["scan_report_html"]
 
 #: data files the caller writes beside the report, with what they hold
 DATA_FILES = (
@@ -460,7 +460,7 @@ def _footer() -> str:
 
 # ----------------------------------------------------------------------------- entry point
 
-def render_scan_report_html(result: "ScanResult") -> str:
+def scan_report_html(result: "ScanResult") -> str:
     """Render a scan flow result as one self-contained HTML page.
 
     Parameters

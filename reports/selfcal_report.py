@@ -4,10 +4,17 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
-from markcal.reports.selfcal_outputs import DATA_FILES
 from markcal.stages.selfcal import site_xy_mm
 
-__all__ = ["render_selfcal_report_html"]
+__all__ = ["selfcal_report_html", "DATA_FILES"]
+
+#: the data files written beside the report, with what they hold
+DATA_FILES = (
+    ("stage_error.csv", "m,n,x_mm,y_mm,gx_um,gy_um: the stage error G at each site (the stage reads p + G(p))"),
+    ("stage_error_theta.csv", "k,theta_deg,gtheta_deg: the rotary stage error at each angular line"),
+    ("correction_grid.csv", "x_mm,y_mm,dx_um,dy_um: command (x + dx, y + dy) to reach true (x, y); dx = Gx"),
+    ("summary.json", "O, R, misalignments, residuals, noise levels, bounds, truth comparison when known"),
+)
 
 #: paper 001 Table 1 and 2 (noise 0.02 µm / 0.001° and 0.002 µm / 0.0001°): EGθ max, min, std (deg);
 #: the EGx, EGy rows did not survive the text extraction
@@ -123,7 +130,7 @@ def _truth_tables(result) -> str:
             + note)
 
 
-def render_selfcal_report_html(result) -> str:
+def selfcal_report_html(result) -> str:
     """Render a selfcal flow result as one self-contained HTML page."""
     s, sol = result.summary, result.solution
     verdict = (f"Stage error over {s['n']} × {s['n']} sites at {num(s['pitch_mm'])}: RMS "

@@ -1,12 +1,11 @@
 """Files of the servo flow: metrics.csv, traces.csv, summary.json (last), report.html."""
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from markcal.pipeline.flows.servo import METRIC_COLUMNS, ServoResult
-from markcal.reports.files import start_outputs, write_csv, write_json
+from markcal.reports.files import OutputFolder
+from markcal.reports.servo_report import servo_report_html
 
 #: traces.csv columns
 TRACE_COLUMNS = ("case", "controller", "amplitude_mm", "frequency_hz", "t_s", "ref_mm", "pos_mm", "err_um")
@@ -43,21 +42,9 @@ def traces_table(result: ServoResult, max_points: int = 1000) -> dict:
 
 def write_servo_outputs(result: ServoResult, out_dir, report: bool = True) -> dict:
     """Write all outputs atomically; ``summary.json`` last. Returns name -> path."""
-    start_outputs(out_dir)
-    paths = {}
-    p = os.path.join(out_dir, "metrics.csv")
-    write_csv(p, metrics_table(result))
-    paths["metrics.csv"] = p
-    p = os.path.join(out_dir, "traces.csv")
-    write_csv(p, traces_table(result))
-    paths["traces.csv"] = p
+    out = OutputFolder(out_dir)
+    out.csv("metrics.csv", metrics_table(result))
+    out.csv("traces.csv", traces_table(result))
     if report:
-        from markcal.reports.files import atomic_write_text
-        from markcal.reports.servo_report import servo_report_html
-        p = os.path.join(out_dir, "report.html")
-        atomic_write_text(p, servo_report_html(result))
-        paths["report.html"] = p
-    p = os.path.join(out_dir, "summary.json")
-    write_json(p, result.summary)
-    paths["summary.json"] = p
-    return paths
+        out.text("report.html", servo_report_html(result))
+    return out.finish(result.summary)

@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.pipeline.flows.servo import PAPER_RC_M, PAPER_TABLE1, PAPER_TABLE2, ServoResult, find, reduction_pct
+from markcal.pipeline.flows.servo import ServoResult
+from markcal.stages.servo_cases import PAPER_RC_M, PAPER_TABLE1, PAPER_TABLE2, find_run
+from markcal.stages.stats import reduction_pct
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.servo_control import RepetitiveParams, closed_loop_poles, pid_frequency_response
 from markcal.stages.servo_plant import discretise, plant_frequency_response
@@ -33,8 +35,8 @@ def _loop_modes(cfg, schedule):
 
 def _why_step(res, stroke, which, ours, paper):
     cfg = res.config
-    b = find(res.runs, "step", "baseline", stroke)
-    c = find(res.runs, "step", "cca", stroke)
+    b = find_run(res.runs, "step", "baseline", stroke)
+    c = find_run(res.runs, "step", "cca", stroke)
     modes = _loop_modes(cfg, 1.0)
     loop = f"ω<sub>n</sub> ≈ {modes[0]:.0f} rad/s, ζ ≈ {modes[1]:.2f}" if modes else "no complex mode"
     if which == "settling":
@@ -63,7 +65,7 @@ def _why_step(res, stroke, which, ours, paper):
 def _why_sine(res, freq, ours, paper):
     m = res.rc.m
     return (f"the reconstructed loop is stiffer than the paper's (baseline STD here "
-            f"{find(res.runs, 'sine', 'baseline', res.summary['sine_amplitude_mm'], freq).std_um:.2f} µm vs "
+            f"{find_run(res.runs, 'sine', 'baseline', res.summary['sine_amplitude_mm'], freq).std_um:.2f} µm vs "
             f"{PAPER_TABLE2.get(freq, (np.nan,) * 5)[1]} µm) and the lead m = {m} chosen for the best eq. 24 "
             f"margin matches its phase lag, so the repetitive controller learns almost all of the periodic "
             f"error; the paper's m = {PAPER_RC_M} violates eq. 24 on this plant "
@@ -77,7 +79,7 @@ def _fig8(res):
     for i, s in enumerate(strokes):
         ax1 = fig.add_subplot(len(strokes), 2, 2 * i + 1)
         ax2 = fig.add_subplot(len(strokes), 2, 2 * i + 2)
-        b, c = find(res.runs, "step", "baseline", s), find(res.runs, "step", "cca", s)
+        b, c = find_run(res.runs, "step", "baseline", s), find_run(res.runs, "step", "cca", s)
         ax1.plot(b.sim.t_s * 1e3, b.sim.ref_mm, color=C_REF, lw=1, ls="--", label="reference")
         ax1.plot(b.sim.t_s * 1e3, b.sim.pos_mm, color=C_BASE, lw=1.2, label="without CCA")
         ax1.plot(c.sim.t_s * 1e3, c.sim.pos_mm, color=C_CCA, lw=1.2, label="with CCA")
@@ -103,7 +105,7 @@ def _fig8(res):
 def _fig9(res):
     amp = 5.0 if any(np.isclose(a, 5.0) for a in res.config.amplitudes_mm) else res.config.amplitudes_mm[0]
     freq = 1.0 if any(np.isclose(f, 1.0) for f in res.config.frequencies_hz) else res.config.frequencies_hz[0]
-    b, c = find(res.runs, "sine", "baseline", amp, freq), find(res.runs, "sine", "cca", amp, freq)
+    b, c = find_run(res.runs, "sine", "baseline", amp, freq), find_run(res.runs, "sine", "cca", amp, freq)
     fig = new_figure(11, 3.2)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
     for r, col, lab in ((b, C_BASE, "without CCA"), (c, C_CCA, "with CCA")):
@@ -126,8 +128,8 @@ def _fig10(res):
     fig = new_figure(11, 2.2 * len(freqs))
     for i, f in enumerate(freqs):
         ax = fig.add_subplot(len(freqs), 1, i + 1)
-        for r, col, lab in ((find(res.runs, "sine", "baseline", amp, f), C_BASE, "without CCA"),
-                            (find(res.runs, "sine", "cca", amp, f), C_CCA, "with CCA")):
+        for r, col, lab in ((find_run(res.runs, "sine", "baseline", amp, f), C_BASE, "without CCA"),
+                            (find_run(res.runs, "sine", "cca", amp, f), C_CCA, "with CCA")):
             w = r.window
             ax.plot(r.sim.t_s[w] - r.sim.t_s[w][0], r.sim.err_mm[w] * 1e3, color=col, lw=1, label=lab)
         ax.set_ylabel("error (µm)")
@@ -199,7 +201,7 @@ def _sim_parts(res):
     # Table 1
     rows, whys = [], []
     for stroke in cfg.strokes_mm:
-        b, c = find(res.runs, "step", "baseline", stroke), find(res.runs, "step", "cca", stroke)
+        b, c = find_run(res.runs, "step", "baseline", stroke), find_run(res.runs, "step", "cca", stroke)
         ro, rs = reduction_pct(b.overshoot_um, c.overshoot_um), reduction_pct(b.settling_time_s, c.settling_time_s)
         pp = PAPER_TABLE1.get(stroke)
         rows.append([f"{stroke:g}", f"{cfg.velocity_mm_s / 1e3:g}", f"{cfg.acceleration_mm_s2 / 1e3:g}",
@@ -224,7 +226,7 @@ def _sim_parts(res):
     rows, whys = [], []
     for amp in cfg.amplitudes_mm:
         for f in cfg.frequencies_hz:
-            b, c = find(res.runs, "sine", "baseline", amp, f), find(res.runs, "sine", "cca", amp, f)
+            b, c = find_run(res.runs, "sine", "baseline", amp, f), find_run(res.runs, "sine", "cca", amp, f)
             r = reduction_pct(b.std_um, c.std_um)
             pp = PAPER_TABLE2.get(f) if np.isclose(amp, 10.0) else None
             rows.append([f"{amp:g}", f"{f:g}", num(b.mae_um, ""), num(b.std_um, ""), num(c.mae_um, ""),

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 from skimage.feature import peak_local_max
 from skimage.transform import hough_circle
 
@@ -304,3 +305,32 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
           & (cat["shift"] < 1.5) & (cat["n"] > 0.4 * n_full) & np.all(np.isfinite(cat["uv"]), axis=1))
     return RingFit(uv_mm=cat["uv"], radius_scale=1 + cat["m"], width_mm=cat["w"], contrast=cat["a"],
                    rms=cat["rms"], n_points=cat["n"], shift_mm=cat["shift"], ok=ok)
+
+
+def dedupe(xy: np.ndarray, score: np.ndarray, min_dist: float) -> np.ndarray:
+    """Keep the best-scoring point of each cluster of points closer than ``min_dist``.
+
+    Parameters
+    ----------
+    xy : ndarray, shape (n, 2)
+        Positions (any length unit, the same as ``min_dist``).
+    score : ndarray, shape (n,)
+        Higher is better.
+    min_dist : float
+        Points within this distance of a kept, better point are dropped.
+
+    Returns
+    -------
+    ndarray of int
+        Indices of the kept points, ascending.
+    """
+    order = np.argsort(-np.asarray(score))
+    tree = cKDTree(xy)
+    taken = np.zeros(len(xy), bool)
+    keep = []
+    for i in order:
+        if taken[i]:
+            continue
+        keep.append(i)
+        taken[tree.query_ball_point(xy[i], min_dist)] = True
+    return np.array(sorted(keep), int)

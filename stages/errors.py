@@ -21,3 +21,13 @@ class MarkcalError(Exception):
     def with_path(self, path) -> "MarkcalError":
         """Return the same error naming ``path`` (if it names no file yet)."""
         return self if self.path else MarkcalError(self.message, path)
+
+
+def one_line(exc: BaseException, max_chars: int = 400) -> str:
+    """A one-line reason for an exception: a MarkcalError's text as is, else its type and message."""
+    if isinstance(exc, MarkcalError):
+        text = str(exc)
+    else:
+        text = f"internal error: {type(exc).__name__}: {exc}"
+    text = " ".join(text.split())
+    return text[:max_chars] + ("…" if len(text) > max_chars else "")

@@ -8,7 +8,6 @@ is the mean over points and outputs of the squared error (mm^2), as newrb's.
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,16 +68,6 @@ def evaluate(model: RBFModel, xy_mm: np.ndarray, block: int = 65536) -> np.ndarr
         d2 = _sqdist(xy[s:s + block], model.centres_mm)
         out[s:s + block] = np.exp(k * d2) @ model.weights_mm + model.bias_mm
     return out
-
-
-def load_model(path) -> RBFModel:
-    """Load a ``model.json`` written by the scan flow."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            d = json.load(fh)
-    except (OSError, ValueError) as exc:
-        raise MarkcalError(f"cannot read model: {exc}", path) from None
-    return RBFModel.from_dict(d.get("model", d))
 
 
 def _sqdist(a, b):

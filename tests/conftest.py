@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from markcal.fixtures.scan_plate import ScanOptions, render_scan
-from markcal.pipeline.config import plate_spec_toml
+from markcal.fixtures.scan_plate import plate_spec_toml
 from markcal.stages.plate import PlateSpec
 
 SMALL = PlateSpec(rows=7, cols=7)

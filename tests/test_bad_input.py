@@ -8,7 +8,7 @@ import pytest
 
 from conftest import SMALL, save_render
 from markcal.fixtures.scan_plate import ScanOptions, render_scan
-from markcal.pipeline.config import plate_spec_toml
+from markcal.fixtures.scan_plate import plate_spec_toml
 from markcal.stages.plate import PlateSpec
 
 

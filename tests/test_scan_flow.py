@@ -120,7 +120,7 @@ def test_cli_render_and_scan_write_documented_outputs(tmp_path):
               "n_neurons", "plate_tilt_deg", "runtime_s"):
         assert k in s
     assert s["n_expected"] == 25 and s["n_detected"] == 25
-    from markcal.stages.rbf import load_model
+    from markcal.pipeline.tables import read_rbf_model as load_model
     m = load_model(out / "model.json")
     g = np.column_stack([grid["x_mm"], grid["y_mm"]])
     assert np.allclose(m(g), np.column_stack([grid["dx_mm"], grid["dy_mm"]]), atol=1e-12)

@@ -6,7 +6,8 @@ import pytest
 
 from markcal.fixtures.servo_trace import TraceOptions, render_servo_trace
 from markcal.pipeline.cli import main
-from markcal.pipeline.flows.servo import PAPER_TABLE2, ServoConfig, run_servo
+from markcal.pipeline.flows.servo import ServoConfig, run_servo
+from markcal.stages.servo_cases import PAPER_TABLE2
 from markcal.reports.files import read_csv, write_csv
 from markcal.stages.servo_control import (PIDGains, RepetitiveParams, check_rc_stability,
                                           tracking_differentiator)
@@ -192,9 +193,9 @@ def _write_trace(path, t, ref, pos):
     write_csv(path, {"t_s": t, "ref_mm": ref, "pos_mm": pos})
 
 
-@pytest.mark.parametrize("defect,needle", [("gap", "gap in the trace"), ("back", "not strictly increasing"),
-                                           ("dup", "not strictly increasing"), ("nan", "non-finite"),
-                                           ("cols", "missing: pos_mm")])
+@pytest.mark.parametrize("defect,needle", [("gap", "gap in the trace"), ("back", "out of time order"),
+                                           ("dup", "out of time order"), ("nan", "line 9: pos_mm is empty"),
+                                           ("cols", "missing column(s) pos_mm")])
 def test_bad_traces_refused(tmp_path, capsys, defect, needle):
     t = np.arange(200) * 1e-4
     ref = np.sin(2 * np.pi * 5 * t)

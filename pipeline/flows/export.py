@@ -17,7 +17,7 @@ from markcal.pipeline.tables import read_table
 from markcal.reports import export as fmt
 from markcal.stages.ctable import check_interpolation, centred_nodes, sample_onto_nodes
 from markcal.stages.errors import MarkcalError
-from markcal.stages.rbf import load_model
+from markcal.pipeline.tables import read_rbf_model as load_model
 
 __all__ = ["ScanSource", "StageSource", "load_scan_source", "load_stage_source", "export_table",
            "Inspected", "inspect_table"]

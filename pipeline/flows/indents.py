@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from markcal.stages import indent as ind
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.pipeline.config import check_sections, load_toml
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
@@ -304,3 +305,27 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "runtime_s": runtime_s,
     }
     return out
+
+
+def _claims(path) -> bool:
+    return file_ext(path) in (".tif", ".tiff", ".gsf", ".gwy", ".ibw")
+
+
+def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
+    spec = read_array_spec(spec_path) if spec_path else None
+    res = run_indents([path], spec, IndentsOptions(kind=options["kind"] or None,
+                                                   pixel_size_um=options["pixel_size_um"] or None),
+                      progress=progress)
+    if res.failed:
+        raise MarkcalError(res.failed[0][1], res.failed[0][0])
+    return res
+
+
+FLOW = FlowDescriptor(
+    name="indents", help="micro-indentation arrays and imprints from AFM height maps and micrographs",
+    claims=_claims, run=_run_descriptor, spec_name="array.toml",
+    options={"kind": "", "pixel_size_um": 0.0, "no_report": False},
+    key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
+                 Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),
+    tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0},
+    trends=("mean_diameter_um",), cost=8.0)

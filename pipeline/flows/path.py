@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.stages.errors import MarkcalError
 from markcal.stages.path_ga import GAOptions, GAResult, run_ga
 from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_tour, duplicate_groups, \
@@ -313,3 +314,29 @@ def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime
     out["notes"] = list(notes)
     out["runtime_s"] = float(runtime_s)
     return out
+
+
+def _claims(path) -> bool:
+    if file_ext(path) == ".csv":             # a point job: x_mm,y_mm[,...] without z
+        h = csv_header(path)
+        return h[:2] == ["x_mm", "y_mm"] and "z_mm" not in h
+    if file_ext(path) != ".json" or os.path.getsize(path) > 50_000_000:
+        return False
+    try:
+        with open(path, encoding="utf-8") as fh:
+            d = json.load(fh)
+    except (OSError, ValueError):
+        return False
+    return isinstance(d, dict) and "strokes" in d
+
+
+FLOW = FlowDescriptor(
+    name="path", help="marking-order optimisation of galvo jobs",
+    claims=_claims,
+    run=lambda path, spec, options, progress=None: run_path(
+        path, PathOptions(method=options["method"], seed=int(options["seed"])), progress=progress),
+    options={"method": "ga+ls", "seed": 0, "no_report": False},
+    key_figures=(Figure("jump_length_mm", "jump length", "mm"),
+                 Figure("length_reduction_vs_input_pct", "jump length reduction vs input order", "%"),
+                 Figure("time_s", "marking time", "s")),
+    trends=("length_reduction_vs_input_pct",), cost=2.0)

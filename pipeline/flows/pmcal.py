@@ -18,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor
 from markcal.pipeline.tables import check_increasing, read_table
 from markcal.stages import indent as ind
 from markcal.stages.image_io import read_image
@@ -371,3 +372,22 @@ def run_command(calibration_path, targets_path, depth_um: float) -> dict:
     xy = np.column_stack([t["x_um"], t["y_um"]])
     c = command_for_targets(model, xy, depth_um)
     return {"x_um": xy[:, 0], "y_um": xy[:, 1], "x_cmd_um": c[:, 0], "y_cmd_um": c[:, 1], "z_cmd_um": c[:, 2]}
+
+
+def _claims(path) -> bool:
+    return os.path.isdir(path) and sum(os.path.isfile(os.path.join(path, f)) for f in SESSION_FILES[:3]) >= 2
+
+
+FLOW = FlowDescriptor(
+    name="pmcal", help="precision-marking machine calibration (GA, least squares) from a session folder",
+    claims=_claims, folder=True,
+    run=lambda path, spec, options, progress=None: run_pmcal(path, method=options["method"],
+                                                             seed=int(options["seed"]), progress=progress),
+    options={"method": "ga+lsq", "seed": 0, "no_report": False},
+    key_figures=(Figure("F", "fitness F (eq. 9)"), Figure("axes_rms_um", "axis residual RMS", "µm"),
+                 Figure("pose_rms_um", "pmcal pose residual RMS", "µm"),
+                 Figure("nonorth_xy_urad", "non-orthogonality xy", "µrad"),
+                 Figure("nonorth_xz_urad", "non-orthogonality xz", "µrad"),
+                 Figure("nonorth_yz_urad", "non-orthogonality yz", "µrad"),
+                 Figure("landing_rms_um", "landing RMS (truth)", "µm")),
+    trends=("pose_rms_um",), cost=8.0)

@@ -9,8 +9,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial import cKDTree
 
+from markcal.pipeline.config import read_plate_spec
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.stages import detect, galvo, rbf
 from markcal.stages.deviation import deviation_stats, grid_nodes
 from markcal.stages.errors import MarkcalError
@@ -100,20 +101,6 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
         raise exc.with_path(cloud_path) from None
 
 
-def _dedupe(uv, score, min_dist):
-    """Keep the best-scoring centre of each cluster closer than ``min_dist``."""
-    order = np.argsort(-score)
-    tree = cKDTree(uv)
-    taken = np.zeros(len(uv), bool)
-    keep = []
-    for i in order:
-        if taken[i]:
-            continue
-        keep.append(i)
-        taken[tree.query_ball_point(uv[i], min_dist)] = True
-    return np.array(sorted(keep), int)
-
-
 def _detect(raster, spec, opt, say):
     say("median filter, Canny, closing")
     filtered = detect.filter_raster(raster, opt.median_px)
@@ -148,7 +135,7 @@ def _run(cloud, source, spec, opt, say, t0):
         raise MarkcalError(f"ring radii in the scan are {scale:.3f} x the spec's "
                            f"{list(spec.ring_radii_mm)} mm: wrong plate spec?")
     idx = np.flatnonzero(ok)
-    idx = idx[_dedupe(fit.uv_mm[idx], fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9),
+    idx = idx[detect.dedupe(fit.uv_mm[idx], fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9),
                       0.5 * spec.pitch_mm)]
     say("identifying rows and columns")
     uv = fit.uv_mm[idx]
@@ -268,3 +255,30 @@ def _few_found_message(n_found, n_exp, edges, spec, opt):
                 msg += (f"; the marks in the scan have an outer radius of about {r:.2f} mm, "
                         f"the plate spec says {max(spec.ring_radii_mm)} mm")
     return msg
+
+
+def _claims(path) -> bool:
+    e = file_ext(path)
+    if e in (".ply", ".pcd", ".xyz", ".npy"):
+        return True
+    if e in (".csv", ".txt"):
+        h = csv_header(path)
+        return not ({"t_s", "ref_mm", "pos_mm"} & set(h)) and (len(h) >= 3 or not any(c.isalpha() for c in "".join(h)))
+    return False
+
+
+def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
+    spec = read_plate_spec(spec_path)
+    return run_scan(path, spec, ScanOptions(seed=int(options["seed"]), validation=bool(options["validation"])),
+                    progress=progress)
+
+
+FLOW = FlowDescriptor(
+    name="scan", help="3D scan of a galvo-marked plate -> deviations, correction, report",
+    claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
+    options={"seed": 0, "validation": False, "no_report": False},
+    key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
+                 Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
+                 Figure("max_mm", "deviation max", "mm"), Figure("cv_rmse_mm", "RBF CV RMSE", "mm")),
+    tolerances={"max_rms_mm": 0.05},
+    trends=("rms_mm",), cost=4.0)

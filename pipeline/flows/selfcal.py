@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from markcal.pipeline.config import read_selfcal_setup
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor
 from markcal.pipeline.tables import read_table
 from markcal.stages.errors import MarkcalError
 from markcal.stages.selfcal import (AngleViews, GridViews, SelfcalSetup, SelfcalSolution, solve_selfcal,
@@ -162,3 +163,23 @@ def run_selfcal(folder, progress=None) -> SelfcalResult:
     s["runtime_s"] = time.perf_counter() - t0
     return SelfcalResult(source=os.path.abspath(folder), setup=setup, solution=sol, errors=errors,
                          truth=truth, summary=s)
+
+
+def _claims(path) -> bool:
+    return os.path.isdir(path) and os.path.isfile(os.path.join(path, "setup.toml")) and (
+        os.path.isfile(os.path.join(path, "grid_views.csv")) or os.path.isfile(os.path.join(path, "angle_views.csv")))
+
+
+FLOW = FlowDescriptor(
+    name="selfcal", help="XYθz stage self-calibration from an artifact plate measured in several views",
+    claims=_claims, folder=True,
+    run=lambda path, spec, options, progress=None: run_selfcal(path, progress=progress),
+    options={"no_report": False},
+    key_figures=(Figure("n", "sites per side"), Figure("gx_rms_um", "stage error RMS Gx", "µm"),
+                 Figure("gy_rms_um", "stage error RMS Gy", "µm"),
+                 Figure("predicted_sd_gxy_um", "predicted SD of Gx, Gy", "µm"),
+                 Figure("nonorthogonality_urad", "non-orthogonality", "µrad"),
+                 Figure("scale_difference_ppm", "scale difference", "ppm"),
+                 Figure("residual_rms_xy_um", "residual RMS", "µm")),
+    tolerances={"max_residual_rms_xy_um": 0.1},
+    trends=("gx_rms_um",))

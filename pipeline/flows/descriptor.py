@@ -1,0 +1,112 @@
+"""What every flow module declares about itself: one :class:`FlowDescriptor`.
+
+The CLI and the batch runner use it to recognise inputs, fill in options, run
+the flow, show its key figures with units, apply tolerances and plot trends.
+A flow module exports ``FLOW``; the writer of its files lives in ``reports/``
+and is paired with it by one line in :mod:`markcal.pipeline.registry`.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Callable
+
+
+@dataclass(frozen=True)
+class Figure:
+    """A key figure of a flow's summary: summary key, label and unit."""
+
+    key: str
+    label: str
+    unit: str = ""
+
+    @property
+    def caption(self) -> str:
+        """``label, unit`` (as plot axes show it)."""
+        return f"{self.label}, {self.unit}" if self.unit else self.label
+
+
+@dataclass(frozen=True)
+class FlowDescriptor:
+    """How a flow is recognised, configured, run and judged.
+
+    Attributes
+    ----------
+    name : str
+        The command's name (``markcal NAME``).
+    help : str
+        One line for ``--help`` and the docs.
+    claims : callable
+        ``claims(path) -> bool``: is this file (folder when ``folder``) an input.
+    run : callable
+        ``run(input_path, spec_path, options, progress) -> result``; the result
+        has a ``summary`` dict. ``options`` holds every key of :attr:`options`.
+    folder : bool
+        An input is a folder (a session) rather than a file.
+    spec_name : str, optional
+        Default spec file in the input's folder; ``<stem>.toml`` beside the input wins.
+    needs_spec : bool
+        An input without a spec cannot be processed.
+    options : dict
+        Option name (CLI spelling with ``_``) -> default value (its type is the option's type).
+    key_figures : tuple of Figure
+        Summary keys shown in the batch index and summary.csv, with labels and units.
+    tolerances : dict
+        Default pass/fail limits, ``max_<key>`` / ``min_<key>`` -> number.
+    trends : tuple of str
+        Key figures plotted across inputs in the batch index (the first is the "main figure").
+    cost : float
+        Rough relative run time per input (the batch starts the longest first).
+    """
+
+    name: str
+    help: str
+    claims: Callable
+    run: Callable
+    folder: bool = False
+    spec_name: str | None = None
+    needs_spec: bool = False
+    options: dict = field(default_factory=dict)
+    key_figures: tuple = ()
+    tolerances: dict = field(default_factory=dict)
+    trends: tuple = ()
+    cost: float = 1.0
+
+    def find_spec(self, path):
+        """The input's spec file: ``<stem>.toml`` beside it, else :attr:`spec_name` in its folder, else None."""
+        return spec_beside(path, self.spec_name) if self.spec_name else None
+
+    @property
+    def key_names(self) -> tuple:
+        return tuple(f.key for f in self.key_figures)
+
+    def figure(self, key: str) -> Figure:
+        """The key figure ``key`` (a bare one when it is not declared)."""
+        return next((f for f in self.key_figures if f.key == key), Figure(key, key))
+
+
+# ------------------------------------------------------------------ helpers for recognising inputs
+
+def file_ext(path) -> str:
+    """Lower-case extension with the dot (``.csv``)."""
+    return os.path.splitext(os.fspath(path))[1].lower()
+
+
+def csv_header(path) -> list:
+    """The first line of a CSV file as lower-case stripped names ([] when unreadable)."""
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            line = fh.readline()
+    except OSError:
+        return []
+    return [h.strip().lower() for h in line.strip().split(",")]
+
+
+def spec_beside(path, default_name: str):
+    """``<stem>.toml`` beside ``path`` if it exists, else ``default_name`` in its folder, else None."""
+    path = os.fspath(path)
+    own = os.path.splitext(path)[0] + ".toml"
+    if os.path.isfile(own):
+        return own
+    common = os.path.join(os.path.dirname(path), default_name)
+    return common if os.path.isfile(common) else None
