@@ -20,7 +20,7 @@ from typing import Callable
 
 from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext
-from markcal.pipeline.registry import FLOWS
+from markcal.pipeline.registry import all_flows, get_flow
 from markcal.reports.files import start_outputs
 from markcal.stages.errors import MarkcalError, one_line
 
@@ -40,8 +40,9 @@ def read_batch_config(path) -> dict:
     Returns flow name -> {"options": dict, "tolerances": dict}, defaults filled in.
     Unknown flows, options and tolerance keys are refused (typos must not pass).
     """
-    return read_config_file(path, {n: f.descriptor.options for n, f in FLOWS.items()},
-                            {n: f.descriptor.tolerances for n, f in FLOWS.items()})
+    flows = all_flows()
+    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()},
+                            {n: f.descriptor.tolerances for n, f in flows.items()})
 
 
 # ------------------------------------------------------------------ discovery
@@ -71,8 +72,9 @@ def discover(input_dir, out_dir, config: dict) -> Discovery:
     if not os.path.isdir(input_dir):
         raise MarkcalError("input folder does not exist", input_dir)
     jobs, ignored = [], []
-    folder_flows = [f.descriptor for f in FLOWS.values() if f.descriptor.folder]
-    file_flows = [f.descriptor for f in FLOWS.values() if not f.descriptor.folder]
+    flows = [f.descriptor for f in all_flows().values()]
+    folder_flows = [d for d in flows if d.folder]
+    file_flows = [d for d in flows if not d.folder]
     for root, dirs, files in os.walk(input_dir):
         dirs.sort()
         keep = []
@@ -187,7 +189,7 @@ def evaluate(summary: dict, tolerances: dict) -> tuple:
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
                 reused: bool = False) -> dict:
     """The small result record of one input (a row of summary.csv)."""
-    entry = FLOWS[job["flow"]].descriptor if job["flow"] in FLOWS else None
+    entry = get_flow(job["flow"]).descriptor
     checks, failed = evaluate(summary, job["tolerances"]) if summary is not None else ("", "")
     if summary is None:
         status = "error"
@@ -216,7 +218,7 @@ def run_job(job: dict) -> dict:
     """
     t0 = time.perf_counter()
     try:
-        flow = FLOWS[job["flow"]]
+        flow = get_flow(job["flow"])
         if flow.descriptor.needs_spec and not job.get("spec"):
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
@@ -250,7 +252,7 @@ def columns(records) -> list:
     """summary.csv columns: the common ones, then each flow's key figures in registry order."""
     cols = list(BASE_COLUMNS)
     flows_present = {r["flow"] for r in records}
-    for name, f in FLOWS.items():
+    for name, f in all_flows().items():
         if name in flows_present:
             cols += [k for k in f.descriptor.key_names if k not in cols]
     return cols
@@ -266,7 +268,7 @@ def _expected_cost(job) -> float:
                 if os.path.isdir(p) else os.path.getsize(p))
     except OSError:
         size = 0
-    return FLOWS[job["flow"]].descriptor.cost * max(1.0, size / 10e6)
+    return get_flow(job["flow"]).descriptor.cost * max(1.0, size / 10e6)
 
 
 @dataclass(frozen=True)
@@ -333,7 +335,7 @@ def run_batch(input_dir, out_dir, config_path=None, workers: int = 1, scheduler:
         raise MarkcalError(f"--workers must be at least 1 (got {workers})")
     found = discover(input_dir, out_dir, config)
     if not found.jobs:
-        raise MarkcalError(f"no inputs found (known flows: {', '.join(FLOWS)}; "
+        raise MarkcalError(f"no inputs found (known flows: {', '.join(all_flows())}; "
                            f"{len(found.ignored)} files not recognised)", os.path.abspath(input_dir))
     os.makedirs(out_dir, exist_ok=True)
     records = {}
@@ -362,6 +364,6 @@ def run_batch(input_dir, out_dir, config_path=None, workers: int = 1, scheduler:
     present = {r["flow"] for r in ordered}
     shown = {n: FlowColumns(f.descriptor.key_names,
                             tuple((k, f.descriptor.figure(k).caption) for k in f.descriptor.trends))
-             for n, f in FLOWS.items() if n in present}
+             for n, f in all_flows().items() if n in present}
     return BatchResult(ordered, found.ignored, len(todo), n_reused, time.perf_counter() - t0,
                        columns(ordered), shown)

@@ -7,17 +7,11 @@ batch index lists the flows.
 """
 from __future__ import annotations
 
+import importlib
 from dataclasses import dataclass
 from typing import Callable
 
-from markcal.pipeline.flows import indents, path, pmcal, scan, selfcal, servo
 from markcal.pipeline.flows.descriptor import FlowDescriptor
-from markcal.reports.indent_outputs import write_indent_outputs
-from markcal.reports.path_outputs import write_path_outputs
-from markcal.reports.pmcal_outputs import write_pmcal_outputs
-from markcal.reports.scan_outputs import write_scan_outputs
-from markcal.reports.selfcal_outputs import write_selfcal_outputs
-from markcal.reports.servo_outputs import write_servo_outputs
 from markcal.stages.errors import MarkcalError
 
 
@@ -33,21 +27,41 @@ class Flow:
         return self.descriptor.name
 
 
-#: name -> Flow, in recognition order
-FLOWS: dict = {}
+#: name -> (flow module exporting FLOW, "module:function" of its writer), in recognition order.
+#: Modules are imported when first asked for, so a single command loads only its own flow.
+REGISTERED: dict = {}
+_LOADED: dict = {}
 
 
-def register(descriptor: FlowDescriptor, write: Callable) -> None:
-    """Add (or replace) a flow."""
-    FLOWS[descriptor.name] = Flow(descriptor, write)
+def register(name: str, flow_module: str, writer: str) -> None:
+    """Add (or replace) a flow: its module (exporting ``FLOW``) and its writer ``"module:function"``."""
+    REGISTERED[name] = (flow_module, writer)
+    _LOADED.pop(name, None)
 
 
-register(selfcal.FLOW, write_selfcal_outputs)
-register(servo.FLOW, write_servo_outputs)
-register(scan.FLOW, write_scan_outputs)
-register(indents.FLOW, write_indent_outputs)
-register(path.FLOW, write_path_outputs)
-register(pmcal.FLOW, write_pmcal_outputs)
+register("selfcal", "markcal.pipeline.flows.selfcal", "markcal.reports.selfcal_outputs:write_selfcal_outputs")
+register("servo", "markcal.pipeline.flows.servo", "markcal.reports.servo_outputs:write_servo_outputs")
+register("scan", "markcal.pipeline.flows.scan", "markcal.reports.scan_outputs:write_scan_outputs")
+register("indents", "markcal.pipeline.flows.indents", "markcal.reports.indent_outputs:write_indent_outputs")
+register("path", "markcal.pipeline.flows.path", "markcal.reports.path_outputs:write_path_outputs")
+register("pmcal", "markcal.pipeline.flows.pmcal", "markcal.reports.pmcal_outputs:write_pmcal_outputs")
+
+
+def get_flow(name: str) -> Flow:
+    """The registered flow ``name`` (imports its modules on first use)."""
+    if name not in _LOADED:
+        flow_module, writer = REGISTERED[name]
+        wmod, wfun = writer.split(":")
+        descriptor = importlib.import_module(flow_module).FLOW
+        if descriptor.name != name:
+            raise ValueError(f"{flow_module}.FLOW is named {descriptor.name!r}, registered as {name!r}")
+        _LOADED[name] = Flow(descriptor, getattr(importlib.import_module(wmod), wfun))
+    return _LOADED[name]
+
+
+def all_flows() -> dict:
+    """Every registered flow, name -> :class:`Flow`, in recognition order (imports them all)."""
+    return {name: get_flow(name) for name in REGISTERED}
 
 
 def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict | None = None,
@@ -72,7 +86,7 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     result, paths
         The flow's result object and output name -> path (summary.json written last).
     """
-    flow = FLOWS[name]
+    flow = get_flow(name)
     d = flow.descriptor
     opts = dict(d.options)
     for k, v in (options or {}).items():
