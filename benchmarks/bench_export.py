@@ -11,7 +11,7 @@ import numpy as np
 
 from markcal.pipeline.cli import main
 from markcal.pipeline.flows.export import export_table, load_scan_source
-from markcal.reports import export as fmt
+from markcal.stages import table_formats as fmt
 
 
 def run():
