@@ -11,13 +11,13 @@ __all__ = ["render_table_report_html", "structure_rows"]
 def _figure(t) -> str:
     fig = new_figure(13, 4.4)
     ax = fig.add_subplot(1, 3, 1)
-    step = max(1, len(t.x_mm) // 17)
+    step = max(1, len(t.x_mm) // 12)
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(np.hypot(t.u, t.v).max())
     k = nice_number(0.8 * pitch / vmax) if vmax > 0 else 1.0
     ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
-              angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.004)
+              angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
@@ -32,6 +32,7 @@ def _figure(t) -> str:
         fig.colorbar(im, ax=axc, shrink=0.8, label=t.unit)
         axc.set_xlabel("x (mm)")
         axc.set_title(name, fontsize=9)
+    fig.subplots_adjust(wspace=0.5)
     return img(png_b64(fig), "table field",
                f"The {esc(t.what)} at each of the {t.u.size} nodes ({len(t.x_mm)} x {len(t.y_mm)}) as the reader "
                "interprets the file, x to the right and y up. A lens correction's x component changes sign across "
