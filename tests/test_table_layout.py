@@ -195,6 +195,10 @@ def test_a3200_axis_order():
     assert rows[0, 0] == pytest.approx(-err_x_um[0, 0]) and rows[0, 1] == pytest.approx(-err_y_um[0, 0])
     t = inspect_bytes(text.encode(), "s.cal")
     assert t.warnings == () and np.allclose(t.u, -err_x_um)
+    sq = np.linspace(-20.0, 20.0, 5)            # a map whose x error varies along y: the axes look swapped
+    gx, gy = np.meshgrid(sq, sq)
+    swapped = fmt.encode_a3200(sq, sq, 0.5 * gy, 0.3 * gx)
+    assert "look swapped relative to its x/y labels" in inspect_bytes(swapped.encode(), "w.cal").warnings[0]
 
 
 def test_export_note(scan_dir, tmp_path, capsys):

@@ -205,7 +205,6 @@ class Inspected:
 
 def _structure_warnings(st: TableStructure, expected: str, binary: bool) -> tuple:
     """One-line warnings when a table's structure contradicts the layout it is read with."""
-    other = {"inner": "outer", "outer": "inner"}
     if st.first_along == "none":
         if not binary:          # a text format names its axes: no layout is assumed
             return ()
@@ -217,7 +216,7 @@ def _structure_warnings(st: TableStructure, expected: str, binary: bool) -> tupl
                 f"{st.first_along} index, the layout read puts x along the {expected} index "
                 f"(evidence {st.evidence:+.2f}); read it with --outer {'y' if st.first_along == 'inner' else 'x'}",)
     return (f"the x component is odd along y and the y component along x (evidence {st.evidence:+.2f}): "
-            f"the file's axes look swapped relative to its {other[expected]}/{expected} labels",)
+            "the file's axes look swapped relative to its x/y labels",)
 
 
 def _entry_range(a: np.ndarray) -> str:
