@@ -1,17 +1,22 @@
 """Correction tables: fidelity of a .cor to the scan flow's correction, and write/read times.
 
 Run: .venv/bin/python benchmarks/bench_export.py  (renders and scans one 19 x 19 plate first)
+     .venv/bin/python benchmarks/bench_export.py --structure   (only the structural check and the note, on the
+     real EZCAD tables in ../shared/realdata/galvo_tables/)
 """
 import contextlib
 import io
+import os
+import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
 from markcal.pipeline.cli import main
-from markcal.pipeline.flows.export import export_table, load_scan_source
-from markcal.reports import export as fmt
+from markcal.pipeline.flows.export import export_table, inspect_bytes, load_scan_source
+from markcal.stages import table_formats as fmt
 
 
 def run():
@@ -39,5 +44,30 @@ def run():
         print(f"{r[0]:7.0f}  {r[1]:8.1f}  {r[2]:10.0f}  {r[3]:38.3f}  {r[4]:18d}  {r[5]:7.3f}  {r[6]:6.4f}")
 
 
+def _median_s(fn, repeats=15):
+    times = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times))
+
+
+def structure():
+    """Structural check (inspect_bytes) and the note's HTML on the real tables: median of 15 runs."""
+    from markcal.reports.table_report import render_table_report_html
+    root = Path(os.environ.get("MARKCAL_REALDATA", Path(__file__).resolve().parents[1].parent / "shared" / "realdata"))
+    if not (root / "galvo_tables").is_dir():
+        root = Path("/work/shared/realdata")
+    print("table       layout found  evidence  inspect_bytes ms  note HTML ms")
+    for name in ("50mm.cor", "250mm.cor"):
+        data = (root / "galvo_tables" / name).read_bytes()
+        t = inspect_bytes(data, name)
+        t_read = _median_s(lambda: inspect_bytes(data, name))
+        t_html = _median_s(lambda: render_table_report_html(t), repeats=5)
+        print(f"{name:10s}  {t.structure.first_along:12s}  {t.structure.evidence:+8.2f}  {t_read * 1e3:16.2f}  "
+              f"{t_html * 1e3:12.0f}")
+
+
 if __name__ == "__main__":
-    run()
+    structure() if "--structure" in sys.argv else run()

@@ -2,22 +2,29 @@
 from __future__ import annotations
 
 import os
+import sys
 
 from markcal.pipeline.progress import progress
 
 
 def _cor_ctb_options(args):
-    from markcal.reports.export import CorOptions, CtbOptions
+    from markcal.stages.table_formats import CorOptions, CtbOptions
     cor = CorOptions(node_spacing_units=args.node_spacing or 1024.0, outer=args.outer, sign=args.cor_sign)
-    ctb = CtbOptions(node_spacing_bits=args.node_spacing or 65535.0 / 64.0, content=args.ctb_content)
+    ctb = CtbOptions(node_spacing_bits=args.node_spacing or 65535.0 / 64.0, content=args.ctb_content, outer=args.outer)
     return cor, ctb
 
 
+def _warn(t) -> None:
+    """Structural warnings go to stderr even with --quiet: they are about the file a machine will load."""
+    for w in t.warnings:
+        print(f"markcal: warning: {t.path}: {w}", file=sys.stderr, flush=True)
+
+
 def cmd_export(args) -> int:
-    from markcal.pipeline.flows.export import export_table
-    from markcal.reports.export import FORMATS
-    from markcal.reports.files import atomic_write_bytes
+    from markcal.pipeline.flows.export import export_table, inspect_bytes
+    from markcal.reports.export import write_export
     from markcal.stages.errors import MarkcalError
+    from markcal.stages.table_formats import FORMATS
 
     if args.list:
         for name, (ext, desc) in FORMATS.items():
@@ -30,12 +37,17 @@ def cmd_export(args) -> int:
     data, facts = export_table(args.format, args.source, lens_mm=args.lens_mm, cor=cor, ctb=ctb, rtc4=args.rtc4,
                                fill_missing=args.fill_missing, ax1=args.ax1, ax2=args.ax2, sign=args.sign,
                                allow_extrapolation=args.allow_extrapolation)
-    atomic_write_bytes(args.out, data)
+    t = inspect_bytes(data, args.out, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
+    note = write_export(args.out, data, t, facts, report=not args.no_report)
+    _warn(t)
+    say(t.layout)
     say(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in facts.items()))
     if facts.get("extrapolated_nodes"):
         say(f"note: {facts['extrapolated_nodes']} nodes lie outside the measured plate and carry the value at "
             "its nearest edge")
     print(os.path.abspath(args.out))
+    if note:
+        print(os.path.abspath(note))
     return 0
 
 
@@ -46,6 +58,7 @@ def cmd_inspect(args) -> int:
 
     cor, ctb = _cor_ctb_options(args)
     t = inspect_table(args.table, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
+    _warn(t)
     out = args.out or os.path.splitext(os.path.basename(args.table))[0] + "_inspect"
     os.makedirs(out, exist_ok=True)
     import numpy as np
@@ -62,7 +75,9 @@ def _table_options(p):
     p.add_argument("--lens-mm", type=float, help="lens field size (mm): galvo scale = 65536 / lens-mm units per mm")
     p.add_argument("--node-spacing", type=float, default=None,
                    help="controller units between table nodes (cor default 1024, ctb default 65535/64)")
-    p.add_argument("--outer", choices=["x", "y"], default="x", help="cor: axis of the outer loop of entries (default x)")
+    p.add_argument("--outer", choices=["y", "x"], default="y",
+                   help="cor, ctb: axis of the outer index of the 65 x 65 entries; y (default): the inner index runs "
+                        "along x, as in EZCAD's and SCANLAB's own files; x: transposed")
     p.add_argument("--cor-sign", choices=["subtract", "add"], default="subtract",
                    help="cor: the controller drives nominal - entry (subtract, default) or nominal + entry")
     p.add_argument("--ctb-content", choices=["absolute", "offset"], default="absolute",
@@ -85,6 +100,7 @@ def register(sub, render_sub) -> None:
     ex.add_argument("--ax2", type=int, default=2, help="a3200: axis number of y")
     ex.add_argument("--allow-extrapolation", action="store_true",
                     help="write even when most of the table lies outside the measured plate")
+    ex.add_argument("--no-report", action="store_true", help="do not write the note <out>.html beside the table")
     ex.add_argument("--quiet", action="store_true")
     ex.set_defaults(func=cmd_export)
 

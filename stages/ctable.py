@@ -14,7 +14,8 @@ import numpy as np
 from markcal.stages.deviation import GridCorrection
 from markcal.stages.errors import MarkcalError
 
-__all__ = ["Sampled", "sample_onto_nodes", "check_interpolation", "check_range", "centred_nodes"]
+__all__ = ["Sampled", "sample_onto_nodes", "check_interpolation", "check_range", "centred_nodes",
+           "ComponentStructure", "TableStructure", "table_structure"]
 
 
 @dataclass(frozen=True)
@@ -118,3 +119,110 @@ def check_range(values: np.ndarray, lo: float, hi: float, what: str, unit: str) 
         worst = v[bad][np.argmax(np.abs(v[bad]))]
         raise MarkcalError(f"{what}: value {worst:.0f} {unit} is outside the format's range "
                            f"{lo:.0f}..{hi:.0f} {unit} ({int(bad.sum())} entries); the correction does not fit")
+
+
+# ----------------------------------------------------------------------------- structure of a stored table
+
+#: how clear the evidence must be (of 2) before a layout is named
+LAYOUT_EVIDENCE_MIN = 0.5
+
+
+@dataclass(frozen=True)
+class ComponentStructure:
+    """Symmetry of one stored component (file order ``[outer, inner]``).
+
+    Attributes
+    ----------
+    odd_inner, odd_outer : float
+        Antisymmetry about the centre node along the inner / outer index,
+        ``-sum(v * mirror(v)) / sum(v**2)`` of the values minus the centre node:
+        1 for an odd component (zero on the middle line, opposite signs at the
+        two ends), -1 for an even one, near 0 for no symmetry.
+    centre : float
+        Value at the centre node (file units).
+    middle_inner_max, middle_outer_max : float
+        Largest ``|value - centre|`` on the middle line where the inner (outer)
+        index is at the centre: 0 for a component exactly odd along it.
+    rms : float
+        RMS of the values minus the centre node (file units).
+    """
+
+    odd_inner: float
+    odd_outer: float
+    centre: float
+    middle_inner_max: float
+    middle_outer_max: float
+    rms: float
+
+
+@dataclass(frozen=True)
+class TableStructure:
+    """Which index each component of a stored table is odd along.
+
+    Attributes
+    ----------
+    first, second : ComponentStructure
+        The first and second value of each pair (``.cor``), or the X and Y
+        table (``.ctb``), or the x and y columns (text formats).
+    first_along : {"inner", "outer", "none"}
+        The index the first component's axis runs along, judged from both
+        components (an x correction is odd in x, a y correction odd in y);
+        ``none``: the table fits no known layout (see ``reason``).
+    evidence : float
+        -2..2; positive for "inner", negative for "outer".
+    reason : str
+        Why no layout was named ("" when one was).
+    """
+
+    first: ComponentStructure
+    second: ComponentStructure
+    first_along: str
+    evidence: float
+    reason: str
+
+
+def _component(v: np.ndarray) -> ComponentStructure:
+    c0, c1 = v.shape[0] // 2, v.shape[1] // 2
+    d = np.asarray(v, float) - float(v[c0, c1])
+    e = float(np.sum(d * d))
+    odd_in = -float(np.sum(d * d[:, ::-1])) / e if e > 0 else 0.0
+    odd_out = -float(np.sum(d * d[::-1, :])) / e if e > 0 else 0.0
+    return ComponentStructure(odd_in, odd_out, float(v[c0, c1]), float(np.max(np.abs(d[:, c1]))),
+                              float(np.max(np.abs(d[c0, :]))), float(np.sqrt(e / d.size)))
+
+
+def table_structure(first: np.ndarray, second: np.ndarray) -> TableStructure:
+    """Symmetry of a stored two-component table and the layout it fits.
+
+    Parameters
+    ----------
+    first, second : ndarray
+        (n_outer, n_inner) components in file order, odd counts (a centre node).
+
+    Returns
+    -------
+    TableStructure
+        ``first_along`` is ``inner`` when the first component is odd along the
+        inner index and the second along the outer one (EZCAD's and SCANLAB's
+        files), ``outer`` for the transposed layout, ``none`` when the table has
+        no such structure (all zero, constant, permuted, or the two components
+        odd along the same index). A table dominated by a rotation or shear
+        (no scale or lens term) cannot show its layout and may be misjudged.
+    """
+    first, second = np.asarray(first, float), np.asarray(second, float)
+    if first.shape != second.shape or first.ndim != 2 or first.shape[0] % 2 == 0 or first.shape[1] % 2 == 0:
+        raise MarkcalError(f"a table's two components need the same odd shape (got {first.shape}, {second.shape})")
+    a, b = _component(first), _component(second)
+    wa, wb = a.rms ** 2, b.rms ** 2
+    if wa + wb == 0:
+        nonzero = np.any(first != 0) or np.any(second != 0)
+        return TableStructure(a, b, "none", 0.0, "every entry equals the centre node's" if nonzero
+                              else "every entry is zero")
+    ev = (wa * (a.odd_inner - a.odd_outer) + wb * (b.odd_outer - b.odd_inner)) / (wa + wb)
+    if ev >= LAYOUT_EVIDENCE_MIN:
+        return TableStructure(a, b, "inner", ev, "")
+    if ev <= -LAYOUT_EVIDENCE_MIN:
+        return TableStructure(a, b, "outer", ev, "")
+    return TableStructure(a, b, "none", ev, f"neither component is clearly odd along one index and the other along "
+                                            f"the other (evidence {ev:+.2f}; a layout needs |evidence| >= "
+                                            f"{LAYOUT_EVIDENCE_MIN})")

@@ -7,7 +7,7 @@ import pytest
 
 from markcal.pipeline.cli import main
 from markcal.pipeline.flows.export import export_table, inspect_table, load_scan_source
-from markcal.reports import export as fmt
+from markcal.stages import table_formats as fmt
 from markcal.stages.ctable import check_interpolation, sample_onto_nodes
 from markcal.stages.deviation import GridCorrection
 from markcal.stages.errors import MarkcalError
@@ -63,13 +63,13 @@ def test_cor_applied_by_bilinear_reproduces_the_scan_correction(scan_dir):
 def test_cor_options_change_the_bytes_not_the_field(scan_dir):
     ref, _ = export_table("cor", scan_dir, lens_mm=LENS_MM)
     t_ref, _ = fmt.decode_cor(ref)
-    for opts in (fmt.CorOptions(outer="y"), fmt.CorOptions(sign="add"), fmt.CorOptions(node_spacing_units=1023.0)):
+    for opts in (fmt.CorOptions(outer="x"), fmt.CorOptions(sign="add"), fmt.CorOptions(node_spacing_units=1023.0)):
         data, _ = export_table("cor", scan_dir, lens_mm=LENS_MM, cor=opts)
         assert data != ref
         t, _ = fmt.decode_cor(data, opts)
         if opts.node_spacing_units == 1024.0:
             assert np.array_equal(t.dx_mm, t_ref.dx_mm) and np.array_equal(t.dy_mm, t_ref.dy_mm)
-    t_wrong, _ = fmt.decode_cor(ref, fmt.CorOptions(outer="y"))       # read with the wrong index order
+    t_wrong, _ = fmt.decode_cor(ref, fmt.CorOptions(outer="x"))       # read with the wrong index order
     assert np.array_equal(t_wrong.dx_mm, t_ref.dx_mm.T)
 
 

@@ -2,8 +2,8 @@
 
 Sources are output folders of the scan flow (galvo: ``model.json``,
 ``fiducials.csv``, ``summary.json``) and of the selfcal flow (stage:
-``stage_error.csv``). Formats and their open assumptions: ``reports/export.py``
-and the README ("Correction tables").
+``stage_error.csv``). Format codecs and their open assumptions:
+``stages/table_formats.py`` and the README ("Correction tables").
 """
 from __future__ import annotations
 
@@ -14,13 +14,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from markcal.pipeline.tables import read_table
-from markcal.reports import export as fmt
-from markcal.stages.ctable import check_interpolation, centred_nodes, sample_onto_nodes
+from markcal.stages import table_formats as fmt
+from markcal.stages.ctable import TableStructure, check_interpolation, centred_nodes, sample_onto_nodes, table_structure
 from markcal.stages.errors import MarkcalError
 from markcal.pipeline.tables import read_rbf_model as load_model
 
 __all__ = ["ScanSource", "StageSource", "load_scan_source", "load_stage_source", "export_table",
-           "Inspected", "inspect_table"]
+           "Inspected", "inspect_table", "inspect_bytes", "layout_text"]
 
 
 @dataclass(frozen=True)
@@ -161,11 +161,31 @@ def _correxion(src: ScanSource, lens_mm: float, rtc4: bool, fill_missing: bool) 
                                   "filled_points": int(missing.sum())}
 
 
+def layout_text(kind: str, cor: fmt.CorOptions = fmt.CorOptions(), ctb: fmt.CtbOptions = fmt.CtbOptions(),
+                ax1: int = 1, ax2: int = 2) -> str:
+    """How a format's entries are laid out with these options, in words."""
+    if kind == "cor":
+        return ("65 × 65 (first, second) int32 pairs, first value x; " +
+                ("inner index along x (EZCAD's own layout)" if cor.outer == "y"
+                 else "inner index along y (transposed: not the layout of EZCAD's files)"))
+    if kind == "ctb":
+        return ("X table then Y table, 65 × 65 uint16 each; " +
+                ("inner index along x (SCANLAB's layout)" if ctb.outer == "y"
+                 else "inner index along y (transposed: not SCANLAB's layout)"))
+    if kind == "correxion":
+        return "one line per grid point: Xn, Yn, X mm, Y mm measured; Xn runs fastest, top row (largest Yn) first"
+    return (f"rows along axis {ax2} (y), columns along axis {ax1} (x); each entry a pair "
+            f"(axis {ax1} correction, axis {ax2} correction), µm")
+
+
 @dataclass(frozen=True)
 class Inspected:
     """A table read back: vectors at nodes, ready to draw.
 
     ``u``, ``v`` are indexed ``[iy, ix]`` in ``unit``; ``what`` says what they are.
+    ``structure`` is the symmetry of the entries as stored (file order),
+    ``expected_along`` the index the first component runs along in the layout
+    chosen for reading, ``warnings`` what contradicts it (one line each).
     """
 
     path: str
@@ -177,11 +197,86 @@ class Inspected:
     unit: str
     what: str
     facts: dict = field(default_factory=dict)
+    layout: str = ""
+    structure: TableStructure | None = None
+    expected_along: str = "inner"
+    warnings: tuple = ()
+
+
+def _structure_warnings(st: TableStructure, expected: str, binary: bool) -> tuple:
+    """One-line warnings when a table's structure contradicts the layout it is read with."""
+    if st.first_along == "none":
+        if not binary:          # a text format names its axes: no layout is assumed
+            return ()
+        return (f"the table fits no known layout ({st.reason}): shown as read, not interpreted",)
+    if st.first_along == expected:
+        return ()
+    if binary:
+        return (f"the file's structure contradicts the chosen layout: its first component is odd along the "
+                f"{st.first_along} index, the layout read puts x along the {expected} index "
+                f"(evidence {st.evidence:+.2f}); read it with --outer {'y' if st.first_along == 'inner' else 'x'}",)
+    return (f"the x component is odd along y and the y component along x (evidence {st.evidence:+.2f}): "
+            "the file's axes look swapped relative to its x/y labels",)
+
+
+def _entry_range(a: np.ndarray) -> str:
+    return f"{float(np.min(a)):.6g} … {float(np.max(a)):.6g}"
+
+
+def inspect_bytes(data: bytes, path: str, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
+                  ctb: fmt.CtbOptions = fmt.CtbOptions(), sign: float = 1.0) -> Inspected:
+    """Read a table's bytes into node vectors with a structural check (``path`` names it in messages)."""
+    try:
+        kind = fmt.sniff_format(data)
+    except MarkcalError as exc:
+        raise exc.with_path(path) from None
+    if kind == "cor":
+        t, upm = fmt.decode_cor(data, cor, path)
+        raw = fmt.cor_file_order(data, path)
+        st, expected = table_structure(raw[..., 0], raw[..., 1]), ("inner" if cor.outer == "y" else "outer")
+        facts = {"scale (galvo units/mm)": upm, "lens field (mm)": 65536.0 / upm,
+                 "node spacing (units)": cor.node_spacing_units, "outer index": cor.outer, "sign": cor.sign,
+                 "first values (units)": _entry_range(raw[..., 0]), "second values (units)": _entry_range(raw[..., 1]),
+                 "max |entry| (units)": float(np.max(np.abs(raw)))}
+        x, y, u, v, what, binary = t.x_mm, t.y_mm, t.dx_mm * 1e3, t.dy_mm * 1e3, "command offset", True
+        layout = layout_text(kind, cor=cor)
+    elif kind == "ctb":
+        if lens_mm is None:
+            raise MarkcalError("a .ctb does not store its scale: give --lens-mm", path)
+        bpm = 65536.0 / lens_mm
+        t = fmt.decode_ctb(data, bpm, ctb, path)
+        raw = fmt.ctb_file_order(data, path)
+        st, expected = table_structure(raw[0], raw[1]), ("inner" if ctb.outer == "y" else "outer")
+        facts = {"bits/mm (from --lens-mm)": bpm, "lens field (mm)": float(lens_mm), "content": ctb.content,
+                 "outer index": ctb.outer, "node spacing (bits)": ctb.node_spacing_bits,
+                 "X table (uint16)": _entry_range(raw[0] + 32767.5), "Y table (uint16)": _entry_range(raw[1] + 32767.5)}
+        x, y, u, v, what, binary = t.x_mm, t.y_mm, t.dx_mm * 1e3, t.dy_mm * 1e3, "command offset", True
+        layout = layout_text(kind, ctb=ctb)
+    elif kind == "correxion":
+        d = fmt.decode_correxion(data.decode("latin-1"), path)
+        gx, gy = np.meshgrid(d["x_mm"], d["y_mm"])
+        dev = (d["measured_xy_mm"] - np.stack([gx, gy], axis=-1)) * 1e3
+        x, y, layout = d["x_mm"], d["y_mm"], layout_text(kind)
+        facts = {"bits/mm": d["bits_per_mm"], "RTC4": d["rtc4"],
+                 "lens field (mm)": (2 ** 16 if d["rtc4"] else 2 ** 20) / d["bits_per_mm"], "x deviation (µm)": _entry_range(dev[..., 0]),
+                 "y deviation (µm)": _entry_range(dev[..., 1])}
+        u, v, what, binary = dev[..., 0], dev[..., 1], "measured − nominal position", False
+    else:
+        d = fmt.decode_a3200(data.decode("latin-1"), sign, path)
+        x, y, u, v = d["x_mm"], d["y_mm"], -sign * d["error_x_um"], -sign * d["error_y_um"]
+        layout = layout_text(kind, ax1=d["ax1"], ax2=d["ax2"])
+        facts = {"axes (x, y)": f"{d['ax1']}, {d['ax2']}", "sign": sign, "x corrections (µm)": _entry_range(u),
+                 "y corrections (µm)": _entry_range(v)}
+        what, binary = "table correction (= −sign × measured error)", False
+    if not binary:      # text formats: rows along y, x fastest, so [iy, ix] is their file order
+        st, expected = (table_structure(u, v) if u.shape[0] % 2 and u.shape[1] % 2 else None), "inner"
+    warnings = _structure_warnings(st, expected, binary) if st is not None else ()
+    return Inspected(path, kind, x, y, u, v, "µm", what, facts, layout, st, expected, warnings)
 
 
 def inspect_table(path, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
                   ctb: fmt.CtbOptions = fmt.CtbOptions(), sign: float = 1.0) -> Inspected:
-    """Read any supported table file back into node vectors."""
+    """Read any supported table file back into node vectors, with its structural check."""
     path = os.fspath(path)
     try:
         with open(path, "rb") as fh:
@@ -190,32 +285,4 @@ def inspect_table(path, *, lens_mm: float | None = None, cor: fmt.CorOptions = f
         raise MarkcalError("no such file", path) from None
     except OSError as exc:
         raise MarkcalError(f"cannot read ({exc})", path) from None
-    try:
-        kind = fmt.sniff_format(data)
-    except MarkcalError as exc:
-        raise exc.with_path(path) from None
-    if kind == "cor":
-        t, upm = fmt.decode_cor(data, cor, path)
-        return Inspected(path, kind, t.x_mm, t.y_mm, t.dx_mm * 1e3, t.dy_mm * 1e3, "µm",
-                         "command offset", {"scale (galvo units/mm)": upm, "lens field (mm)": 65536.0 / upm,
-                                            "node spacing (units)": cor.node_spacing_units, "outer index": cor.outer,
-                                            "sign": cor.sign, "max |entry| (units)":
-                                                float(np.max(np.abs(np.r_[t.dx_mm.ravel(), t.dy_mm.ravel()])) * upm)})
-    if kind == "ctb":
-        if lens_mm is None:
-            raise MarkcalError("a .ctb does not store its scale: give --lens-mm", path)
-        bpm = 65536.0 / lens_mm
-        t = fmt.decode_ctb(data, bpm, ctb, path)
-        return Inspected(path, kind, t.x_mm, t.y_mm, t.dx_mm * 1e3, t.dy_mm * 1e3, "µm", "command offset",
-                         {"bits/mm (from --lens-mm)": bpm, "content": ctb.content,
-                          "node spacing (bits)": ctb.node_spacing_bits})
-    text = data.decode("latin-1")
-    if kind == "correxion":
-        d = fmt.decode_correxion(text, path)
-        gx, gy = np.meshgrid(d["x_mm"], d["y_mm"])
-        dev = d["measured_xy_mm"] - np.stack([gx, gy], axis=-1)
-        return Inspected(path, kind, d["x_mm"], d["y_mm"], dev[..., 0] * 1e3, dev[..., 1] * 1e3, "µm",
-                         "measured − nominal position", {"bits/mm": d["bits_per_mm"], "RTC4": d["rtc4"]})
-    d = fmt.decode_a3200(text, sign, path)
-    return Inspected(path, kind, d["x_mm"], d["y_mm"], -sign * d["error_x_um"], -sign * d["error_y_um"], "µm",
-                     "table correction (= −sign × measured error)", {"axes (x, y)": f"{d['ax1']}, {d['ax2']}"})
+    return inspect_bytes(data, path, lens_mm=lens_mm, cor=cor, ctb=ctb, sign=sign)
