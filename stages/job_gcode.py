@@ -53,7 +53,6 @@ class GcodePayload:
     leads: tuple               # per stroke: tuple of text lines
     tails: tuple
     factors: tuple             # mm per file unit, per stroke
-    relative: tuple
     feeds: tuple               # (F, S) per stroke, None where not set
     g0: str                    # "G0" or "G00" as the file writes it
     g1: str
@@ -261,34 +260,53 @@ def _layout(lines, role, strokes, g0, g1, travel_suffix) -> GcodePayload:
         tails.append(list(common[0][0]) if common else [])
         footer = lines[end:]
     return GcodePayload(tuple(header), tuple(footer), tuple(map(tuple, leads)), tuple(map(tuple, tails)),
-                        tuple(s.factor for s in strokes), tuple(s.relative for s in strokes),
+                        tuple(s.factor for s in strokes),
                         tuple((s.f, s.s) for s in strokes), g0, g1, travel_suffix)
+
+
+_DIST = re.compile(r"G\s*0*9([01])(?![\d.])", re.I)
+
+
+def _distance_mode(lines, relative: bool) -> bool:
+    """Whether G91 is in effect after ``lines`` (starting in ``relative``)."""
+    for line in lines:
+        for m in _DIST.finditer(_COMMENT.sub("", line)):
+            relative = m.group(1) == "1"
+    return relative
 
 
 def write_gcode(jf: JobFile, tour) -> str:
     """The G-code job in the order of ``tour``: header, then per stroke a travel to its entry,
     its lead-in lines, its cuts (in the file's units, absolute), its lead-out lines; the footer.
 
-    A stroke cut under ``G91`` is written between ``G90`` and ``G91``.
+    Travels and cuts are written absolute: where the kept lines leave ``G91`` in effect they are
+    written between ``G90`` and ``G91``.
     """
     p: GcodePayload = jf.payload
     out = list(p.header)
+    rel = _distance_mode(p.header, False)
     for s, kind, xy in marked_strokes(jf.job, tour):
         f = p.factors[s]
         if kind == "contour":
             xy = np.vstack([xy, xy[:1]])
-        if p.relative[s]:
+        if rel:
             out.append("G90")
         out.append(f"{p.g0} X{fmt_num(xy[0, 0] / f)} Y{fmt_num(xy[0, 1] / f)}{p.travel_suffix}")
+        if rel:
+            out.append("G91")
         out.extend(p.leads[s])
+        rel = _distance_mode(p.leads[s], rel)
+        if rel:
+            out.append("G90")
         feed, power = p.feeds[s]
         extra = (f" F{fmt_num(feed)}" if feed is not None else "") + (f" S{fmt_num(power)}" if power is not None
                                                                       else "")
         pts = xy[1:] if len(xy) > 1 else xy
         for k, q in enumerate(pts):
             out.append(f"{p.g1} X{fmt_num(q[0] / f)} Y{fmt_num(q[1] / f)}{extra if k == 0 else ''}")
-        out.extend(p.tails[s])
-        if p.relative[s]:
+        if rel:
             out.append("G91")
+        out.extend(p.tails[s])
+        rel = _distance_mode(p.tails[s], rel)
     out.extend(p.footer)
     return "\n".join(out) + "\n"

@@ -32,7 +32,9 @@ MM_PER_PX = 25.4 / 96.0
 SVG_NS = "http://www.w3.org/2000/svg"
 INKSCAPE_NS = "http://www.inkscape.org/namespaces/inkscape"
 _SHAPES = {"path", "rect", "circle", "ellipse", "line", "polyline", "polygon", "use"}
-_UNITS = {"", "px", "mm", "cm", "in", "pt", "pc", "q"}
+#: px per unit, exact (svgelements rounds inch per mm to 0.0393701, 5e-7 off)
+_UNITS = {"": 1.0, "px": 1.0, "mm": 96 / 25.4, "cm": 96 / 2.54, "in": 96.0, "pt": 96 / 72, "pc": 16.0,
+          "q": 96 / 101.6}
 _STYLE_KEYS = ("style", "class", "stroke", "fill", "stroke-width", "stroke-linecap", "stroke-linejoin", "opacity")
 _PROBE = "markcal-probe"
 
@@ -45,6 +47,7 @@ class SvgPayload:
     styles: tuple              # per stroke: dict of attributes for the written path
     layers: tuple              # per stroke: dict of attributes of its layer group (or {})
     user_from_mm: tuple        # 2 x 3 affine: root user units from mm
+    size: tuple                # the root's width / height as written in the source
 
 
 def _local(tag: str) -> str:
@@ -123,13 +126,20 @@ def _subpaths(shape, tol_px):
     return paths
 
 
-def _check_units(root, source):
+def _root_size_px(root, source) -> dict:
+    """Root width / height converted to px exactly; the original texts are returned."""
+    orig = {}
     for k in ("width", "height"):
         v = (root.get(k) or "").strip()
-        m = re.fullmatch(r"[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*([A-Za-z%]*)", v)
-        if v and (not m or m.group(1).lower() not in _UNITS):
+        if not v:
+            continue
+        m = re.fullmatch(r"([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)\s*([A-Za-z%]*)", v)
+        if not m or m.group(2).lower() not in _UNITS:
             raise MarkcalError(f"unsupported units: <svg {k}={v!r}> (use px, mm, cm, in, pt, pc or a number)",
                                source)
+        orig[k] = v
+        root.set(k, repr(float(m.group(1)) * _UNITS[m.group(2).lower()]))
+    return orig
 
 
 def read_svg(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
@@ -149,7 +159,7 @@ def read_svg(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
     """
     from svgelements import SVG, Shape, Use
     root, namespaces = _parse_xml(data, source)
-    _check_units(root, source)
+    size = _root_size_px(root, source)
     _register(namespaces)
     parents = {c: p for p in root.iter() for c in p}
     in_defs = set()
@@ -216,7 +226,7 @@ def read_svg(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
     a = np.linalg.inv(np.column_stack([ex, ey]))               # user from mm: u = A (mm - o)
     aff = np.column_stack([a, -a @ o])
     payload = SvgPayload(tagged, namespaces, tuple(sources), tuple(styles), tuple(layers),
-                         tuple(map(tuple, aff)))
+                         tuple(map(tuple, aff)), tuple(size.items()))
     return JobFile(job, "svg", tuple(groups), dict(unsupported), (), payload)
 
 
@@ -233,6 +243,8 @@ def write_svg(jf: JobFile, tour) -> bytes:
     p: SvgPayload = jf.payload
     _register(p.namespaces)
     root = ET.fromstring(p.data)
+    for k, v in p.size:
+        root.set(k, v)
     parents = {c: par for par in root.iter() for c in par}
     drop = set(p.sources) | {_PROBE}
     for el in list(root.iter()):
