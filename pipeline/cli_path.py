@@ -25,7 +25,8 @@ def cmd_path(args) -> int:
     opt = PathOptions(method=args.method, seed=args.seed, timing=timing,
                       ga=GAOptions(population=args.population, generations=args.generations),
                       ls=LocalSearchOptions(kicks_per_stroke=args.kicks_per_stroke),
-                      ga_max_strokes=args.ga_max_strokes)
+                      ga_max_strokes=args.ga_max_strokes, tolerance_mm=args.tolerance_mm,
+                      keep_layer_order=args.keep_layer_order)
     res = run_path(args.job, opt, progress=say)
     for n in res.notes:
         say(f"note: {n}")
@@ -72,11 +73,16 @@ def register(sub, render_sub) -> None:
     from markcal.pipeline.flows.path import ALIASES, METHODS
 
     p = sub.add_parser("path", help="marking job -> marking order with short jumps (GA, local search), report")
-    p.add_argument("job", help="job file: .json strokes (point / polyline / contour, mm) or .csv points (x_mm,y_mm)")
+    p.add_argument("job", help="job file: .json strokes (point / polyline / contour, mm), .csv points (x_mm,y_mm), "
+                               ".dxf, .svg, .plt/.hpgl or G-code (.gcode, .nc, .ngc)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--method", default="ga+ls", choices=list(METHODS) + sorted(ALIASES),
-                   help="order written out: the paper GA (ga), local search from nearest neighbour (ls), "
-                        "GA then local search (ga+ls, alias ga+2opt; default), or a baseline")
+    p.add_argument("--method", default="auto", choices=list(METHODS) + sorted(ALIASES),
+                   help="order written out: auto (default) = local search from nearest neighbour (ls); "
+                        "the paper GA (ga), GA then local search (ga+ls, alias ga+2opt), or a baseline")
+    p.add_argument("--tolerance-mm", type=float, default=0.01,
+                   help="chordal tolerance for flattening arcs, circles, ellipses, splines and Béziers (mm)")
+    p.add_argument("--keep-layer-order", action="store_true",
+                   help="order only inside each layer / group / pen; layers marked in input order")
     p.add_argument("--seed", type=int, default=0, help="seed of the GA and the local-search kicks")
     p.add_argument("--metric", choices=["distance", "time"], default="distance",
                    help="minimise jump length or jump time (speed + settle)")

@@ -116,9 +116,17 @@ def render_path_report_html(res) -> str:
             ["mark speed, dwell per point", f"{num(s['mark_speed_mm_s'], 'mm/s')}, "
                                             f"{num(s['point_dwell_s'] * 1e6, 'µs')}"],
             ["duplicate strokes (kept)", str(s["n_duplicate_strokes"])],
+            ["job format, groups (layers / pens / colours)", esc(f"{s['format']}, {s['n_groups']}")],
+            ["order", "inside each group, groups in input order (--keep-layer-order)" if s["keep_layer_order"]
+             else "free across groups"],
+            ["curve tolerance (chordal)", num(s["tolerance_mm"])],
             ["seed", str(s["seed"])],
             ["runtime", num(s["runtime_s"], "s")]]
     parts.append("<h2>Summary</h2>" + table(["", ""], rows))
+    if s["unsupported"]:
+        parts.append("<h2>Not read (unsupported)</h2>" + table(
+            ["entity / command", "count"], [[esc(k), str(v)] for k, v in s["unsupported"].items()]) +
+            "<p>Kept unchanged in the written job; not part of the marking order.</p>")
     parts.append("<h2>Orders compared</h2>" + _methods_table(res) +
                  "<p>Jump length: laser-off travel from the end of each stroke to the start of the next, "
                  "the last one back to the start (closed tour, as in the paper). Job time = jump time "
@@ -134,8 +142,10 @@ def render_path_report_html(res) -> str:
                f"MP {res.options.ga.mutation_p}; paper Fig. 7C), with the baselines and the local-search "
                "result as lines.")
         parts.append("<h2>GA convergence</h2>" + img(_convergence_figure(res), "GA convergence", cap))
-    name = "ordered.csv" if res.inp.fmt == "csv" else "ordered.json"
-    files = [(name, "the job in marking order (same format as the input)"),
-             ("summary.json", "the values of the tables above")]
+    from markcal.reports.path_outputs import ordered_names
+    files = [(name, "the job in marking order (same format as the input)" if k == 0 else
+              "the strokes in marking order (mm) with their input index, direction and entry vertex")
+             for k, name in enumerate(ordered_names(res))]
+    files.append(("summary.json", "the values of the tables above"))
     parts.append(data_files_footer(files))
     return page("markcal path: marking order", parts, source=res.source)

@@ -159,7 +159,8 @@ def test_cli_csv_points_end_to_end(tmp_path, capsys):
     assert code == 0
     job_csv = tmp_path / "j" / "job.csv"
     out = tmp_path / "o"
-    code, cap = _run(["path", str(job_csv), "--out", str(out), "--generations", "300", "--quiet"], capsys)
+    code, cap = _run(["path", str(job_csv), "--out", str(out), "--method", "ga+ls", "--generations", "300",
+                      "--quiet"], capsys)
     assert code == 0, cap.err
     assert cap.out.strip().endswith("report.html")
     s = json.loads((out / "summary.json").read_text())
@@ -204,7 +205,7 @@ def test_duplicates_kept_and_said(tmp_path, capsys):
                {"kind": "polyline", "xy_mm": [[5, 0], [0, 0]]}, {"kind": "contour", "xy_mm": [[9, 9], [10, 9], [10, 10]]},
                {"kind": "point", "xy_mm": [8, 1]}]
     job.write_text(json.dumps({"units": "mm", "strokes": strokes}))
-    code, cap = _run(["path", str(job), "--out", str(tmp_path / "o"), "--generations", "50"], capsys)
+    code, cap = _run(["path", str(job), "--out", str(tmp_path / "o"), "--kicks-per-stroke", "0"], capsys)
     assert code == 0
     assert "duplicate" in cap.err
     s = json.loads((tmp_path / "o" / "summary.json").read_text())

@@ -1,9 +1,11 @@
 """The path flow: marking-order optimisation of a galvo marking job (paper 002).
 
-Reads a job (JSON strokes or CSV points, mm), evaluates the input order and
-the raster and nearest-neighbour baselines, runs the chosen method (the
-paper's GA, local search, or the GA followed by local search) and returns the
-tours, their jump lengths and estimated times, and the GA's convergence curve.
+Reads a job (JSON strokes, CSV points, DXF, SVG, HPGL/PLT or G-code; mm),
+evaluates the input order and the raster and nearest-neighbour baselines, runs
+the chosen method (``auto``: the local search; the paper's GA, or the GA
+followed by local search) and returns the tours, their jump lengths and
+estimated times, and the GA's convergence curve. With ``keep_layer_order`` the
+strokes are ordered inside each layer / group only, the groups in input order.
 """
 from __future__ import annotations
 
@@ -17,15 +19,21 @@ import numpy as np
 
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.stages.errors import MarkcalError
+from markcal.stages.job_formats import JobFile
 from markcal.stages.path_ga import GAOptions, GAResult, run_ga
 from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_tour, duplicate_groups, \
     input_tour, make_job, tour_stats
+from markcal.stages.path_layers import join_group_tours, split_groups
 from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, n_kicks_for, \
     nearest_neighbour_tour, raster_tour
 
-#: methods a user can choose; ``ga+2opt`` is another name of ``ga+ls``
-METHODS = ("input", "raster", "nn", "ls", "ga", "ga+ls")
+#: methods a user can choose; ``auto`` (the default) is the local search, ``ga+2opt`` another name of ``ga+ls``
+METHODS = ("auto", "input", "raster", "nn", "ls", "ga", "ga+ls")
 ALIASES = {"ga+2opt": "ga+ls", "ga+local": "ga+ls", "local": "ls", "2opt": "ls"}
+#: job file extensions by format
+FORMATS = {".json": "json", ".csv": "csv", ".txt": "csv", ".dxf": "dxf", ".svg": "svg",
+           ".plt": "hpgl", ".hpgl": "hpgl", ".hpg": "hpgl", ".hgl": "hpgl",
+           ".gcode": "gcode", ".nc": "gcode", ".ngc": "gcode", ".gc": "gcode", ".g": "gcode", ".tap": "gcode"}
 #: keys of a JSON job and of its strokes
 JOB_KEYS = {"units", "name", "description", "strokes"}
 KIND_ALIASES = {"point": "point", "polyline": "polyline", "open": "polyline", "line": "polyline",
@@ -36,23 +44,22 @@ KIND_ALIASES = {"point": "point", "polyline": "polyline", "open": "polyline", "l
 class PathOptions:
     """Settings of the path flow."""
 
-    method: str = "ga+ls"
+    method: str = "auto"
     seed: int = 0
     timing: Timing = field(default_factory=Timing)
     ga: GAOptions = field(default_factory=GAOptions)
     ls: LocalSearchOptions = field(default_factory=LocalSearchOptions)
     ga_max_strokes: int = 500
+    tolerance_mm: float = 0.01
+    keep_layer_order: bool = False
+
+    def __post_init__(self):
+        if not (np.isfinite(self.tolerance_mm) and self.tolerance_mm > 0):
+            raise MarkcalError(f"--tolerance-mm must be > 0 (got {self.tolerance_mm})")
 
 
-@dataclass(frozen=True, eq=False)
-class PathInput:
-    """A job as read: the strokes and what is needed to write the ordered job in the same format."""
-
-    job: Job
-    fmt: str                     # "json" or "csv"
-    document: dict | None        # JSON: the parsed document (strokes as given)
-    csv_header: list | None      # CSV: the header, and the rows as text
-    csv_rows: list | None
+#: the job as read (kept under its old name for callers)
+PathInput = JobFile
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,7 +67,7 @@ class PathResult:
     """Everything the path flow found; ``reports`` turns it into files."""
 
     source: str
-    inp: PathInput
+    inp: JobFile
     options: PathOptions
     method_used: str
     tours: dict                  # name -> Tour (input, raster, nn, then the methods run)
@@ -68,8 +75,9 @@ class PathResult:
     runtimes_s: dict             # name -> s
     ga: GAResult | None
     duplicates: list             # groups of stroke indices
-    notes: list                  # what the user should know (fallback, duplicates)
+    notes: list                  # what the user should know (fallback, duplicates, unsupported entities)
     summary: dict
+    layered: bool = False        # ordered inside each group only, groups in input order
 
     @property
     def tour(self) -> Tour:
@@ -119,7 +127,8 @@ def _read_json(path) -> PathInput:
         if xy.ndim == 2 and xy.shape[1] != 2 or xy.ndim > 2:
             raise MarkcalError(f"stroke {i} ({kind}): xy_mm must be a list of [x, y] pairs", path)
         items.append((kind, xy))
-    return PathInput(make_job(items, path), "json", doc, None, None)
+    job = make_job(items, path)
+    return JobFile(job, "json", ("",) * job.n, {}, (), doc)
 
 
 def _read_csv(path) -> PathInput:
@@ -150,25 +159,51 @@ def _read_csv(path) -> PathInput:
             raise MarkcalError(f"row {k + 2}: x_mm, y_mm must be numbers ({r[ix]!r}, {r[iy]!r})", path) from None
         if not np.all(np.isfinite(xy[k])):
             raise MarkcalError(f"row {k + 2} (point {k}): NaN or infinite coordinate", path)
-    return PathInput(make_job([("point", p) for p in xy], path), "csv", None, header, body)
+    job = make_job([("point", p) for p in xy], path)
+    return JobFile(job, "csv", ("",) * job.n, {}, (), (header, body))
 
 
-def read_job(path) -> PathInput:
-    """Read a job file: ``.json`` strokes or ``.csv`` points (header ``x_mm,y_mm``), mm.
+def _reader(fmt):
+    if fmt == "dxf":
+        from markcal.stages.job_dxf import read_dxf
+        return read_dxf
+    if fmt == "svg":
+        from markcal.stages.job_svg import read_svg
+        return read_svg
+    if fmt == "hpgl":
+        from markcal.stages.job_hpgl import read_hpgl
+        return read_hpgl
+    from markcal.stages.job_gcode import read_gcode
+    return read_gcode
+
+
+def read_job(path, tolerance_mm: float = 0.01) -> JobFile:
+    """Read a job file: ``.json`` strokes, ``.csv`` points (header ``x_mm,y_mm``), DXF, SVG,
+    HPGL/PLT or G-code (curves flattened to ``tolerance_mm``), mm.
 
     Raises
     ------
     MarkcalError
-        Missing or empty file, bad syntax, no strokes, NaN, too few vertices.
+        Missing, unreadable or truncated file, bad syntax, no strokes, NaN, unsupported units.
     """
     ext = os.path.splitext(str(path))[1].lower()
     if not os.path.exists(path):
         raise MarkcalError("no such file", path)
-    if ext == ".json":
+    fmt = FORMATS.get(ext)
+    if fmt is None:
+        raise MarkcalError(f"unknown job format {ext!r} (use {', '.join(sorted(FORMATS))})", path)
+    if fmt == "json":
         return _read_json(path)
-    if ext in (".csv", ".txt"):
+    if fmt == "csv":
         return _read_csv(path)
-    raise MarkcalError("unknown job format (use .json strokes or .csv points with x_mm,y_mm)", path)
+    try:
+        with open(path, "rb") as fh:
+            data = fh.read()
+    except OSError as exc:
+        raise MarkcalError(f"cannot read job ({exc.strerror})", path) from None
+    if not data.strip():
+        raise MarkcalError("empty file: the job has no strokes", path)
+    return _reader(fmt)(data, tolerance_mm, path)
 
 
 # ----------------------------------------------------------------------------- flow
@@ -186,7 +221,7 @@ def run_path(job_path, options: PathOptions | None = None, progress=None) -> Pat
     Parameters
     ----------
     job_path : path
-        JSON job or CSV points (mm).
+        JSON job, CSV points, DXF, SVG, HPGL/PLT or G-code.
     options : PathOptions, optional
     progress : callable, optional
         Called with a short text before each step.
@@ -201,7 +236,7 @@ def run_path(job_path, options: PathOptions | None = None, progress=None) -> Pat
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     say("reading job")
-    inp = read_job(job_path)
+    inp = read_job(job_path, opt.tolerance_mm)
     try:
         return _run(inp, str(job_path), opt, method, say, t0)
     except MarkcalError as exc:
@@ -229,7 +264,7 @@ def optimise_job(job: Job, options: PathOptions | None = None, progress=None) ->
     tours["nn"] = best_entries(job, nearest_neighbour_tour(job), tm)
     rt["nn"] = time.perf_counter() - t
     ga = None
-    used = method
+    used = "ls" if method == "auto" else method
     if method in ("ga", "ga+ls") and job.n > opt.ga_max_strokes:
         used = "ls"
         notes.append(f"{job.n} strokes is more than the GA's limit of {opt.ga_max_strokes} (--ga-max-strokes): "
@@ -254,7 +289,27 @@ def optimise_job(job: Job, options: PathOptions | None = None, progress=None) ->
     return used, tours, rt, ga, notes
 
 
-def _run(inp: PathInput, source: str, opt: PathOptions, method: str, say, t0) -> PathResult:
+def _optimise_layers(inp: JobFile, opt: PathOptions, say) -> tuple:
+    """:func:`optimise_job` inside each group, the groups joined in input order."""
+    parts = split_groups(inp.job, inp.groups)
+    say(f"keeping the layer order: {len(parts)} groups ordered one by one")
+    per = []
+    for name, idx, sub in parts:
+        per.append((idx, sub, optimise_job(sub, opt, None)))
+    used = per[0][2][0]
+    notes = sorted({n for *_, r in per for n in r[4]})
+    names = [k for k in per[0][2][1] if all(k in r[1] for *_, r in per)]
+    tours = {k: join_group_tours([(idx, sub, r[1][k]) for idx, sub, r in per], opt.timing, rotate=k != "input")
+             for k in names}
+    rt = {k: float(sum(r[2][k] for *_, r in per)) for k in names}
+    if used not in tours:                       # the GA ran in some groups only: the local search in all
+        used = "ls"
+    for tr in tours.values():
+        check_tour(inp.job, tr)
+    return used, tours, rt, None, notes
+
+
+def _run(inp: JobFile, source: str, opt: PathOptions, method: str, say, t0) -> PathResult:
     job = inp.job
     tm = opt.timing
     dups = duplicate_groups(job)
@@ -265,11 +320,20 @@ def _run(inp: PathInput, source: str, opt: PathOptions, method: str, say, t0) ->
         notes.append(f"{extra} duplicate stroke(s) kept and marked again (same strokes: {shown})")
     say(f"{job.n} strokes ({int((job.kinds == POINT).sum())} points, {int((job.kinds == POLYLINE).sum())} "
         f"polylines, {int((job.kinds == CONTOUR).sum())} contours)")
-    used, tours, rt, ga, more = optimise_job(job, PathOptions(**{**opt.__dict__, "method": method}), say)
+    if inp.unsupported:
+        listed = ", ".join(f"{k} x{v}" for k, v in sorted(inp.unsupported.items()))
+        notes.append(f"not read (unsupported, kept in the written job): {listed}")
+    notes.extend(inp.notes)
+    mopt = PathOptions(**{**opt.__dict__, "method": method})
+    layered = opt.keep_layer_order and len(inp.group_names) > 1
+    if layered:
+        used, tours, rt, ga, more = _optimise_layers(inp, mopt, say)
+    else:
+        used, tours, rt, ga, more = optimise_job(job, mopt, say)
     notes = more + notes
     stats = {k: tour_stats(job, t, tm) for k, t in tours.items()}
     summary = _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, time.perf_counter() - t0)
-    return PathResult(source, inp, opt, used, tours, stats, rt, ga, dups, notes, summary)
+    return PathResult(source, inp, opt, used, tours, stats, rt, ga, dups, notes, summary, layered)
 
 
 def pct_less(new, old):
@@ -309,6 +373,11 @@ def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime
         if "ga+ls" in stats:
             out["ga_ls_improvement_vs_ga_pct"] = pct_less(stats["ga+ls"]["jump_length_mm"],
                                                       stats["ga"]["jump_length_mm"])
+    out["n_groups"] = len(inp.group_names)
+    out["keep_layer_order"] = bool(opt.keep_layer_order)
+    out["tolerance_mm"] = opt.tolerance_mm
+    out["unsupported"] = dict(sorted(inp.unsupported.items()))
+    out["n_unsupported"] = int(sum(inp.unsupported.values()))
     out["n_duplicate_strokes"] = int(sum(len(g) - 1 for g in dups))
     out["duplicate_strokes"] = [list(map(int, g)) for g in dups]
     out["notes"] = list(notes)
