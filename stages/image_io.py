@@ -3,17 +3,22 @@
 Like ``stages/io`` (point clouds) this is the one place of the indents flow
 that reads files; units are converted here and nowhere else.
 
-Supported:
+The format is recognised by the file's content (the extension only for Igor
+waves, which have no magic bytes). Supported:
 
+- Vendor SPM files (``stages/afm_files``): Bruker NanoScope (``.spm``,
+  ``.000``-``.00x``, legacy), Nanosurf ``.nid``, JPK ``.jpk``, WSxM ``.stp``/``.top``.
 - TIFF (tifffile): grey-scale 8/16-bit (OM) or float (AFM heights). Pixel size
-  from ImageJ metadata (``unit`` + resolution), OME-XML ``PhysicalSizeX``, or
-  the TIFF resolution tags (inch or cm units). Float heights carry their unit in
+  from OME-XML ``PhysicalSizeX``, ImageJ metadata (``unit`` + resolution), the
+  FEI/Thermo ``PixelWidth`` (tag 34682, m) or the resolution tags in cm; an
+  inch (dpi) resolution is a screen or editor setting and never taken as a
+  pixel size, nor a cm value equal to 72/96/150/300 dpi. Float heights carry their unit in
   the ImageJ key ``zunit`` (nm, um, m); without it a map whose range is below
   1e-4 is taken to be in m, otherwise in nm.
 - Gwyddion Simple Field ``.gsf`` (hand-written reader; the format is a text
-  header plus little-endian float32).
-- Gwyddion ``.gwy`` (gwyfile): the first channel titled Height/Topography/Z,
-  else the first channel.
+  header plus little-endian float32). ``XYUnits`` and ``ZUnits`` must be given.
+- Gwyddion ``.gwy`` (gwyfile): the channel titled Height/Topography/Z unless
+  one is named. A field without a lateral or height unit is refused.
 - Igor binary wave ``.ibw`` (igor2) as Asylum Research writes it: a 3-D wave
   whose layers are labelled (``HeightRetrace``, ``AmplitudeRetrace``, ...);
   the Height layer is read (the trace before the retrace), heights in m.
@@ -28,18 +33,16 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, \
+    sniff_format
 from .errors import MarkcalError
 from .io import existing_file
 
 __all__ = ["Image", "read_image", "parse_gsf", "gsf_bytes"]
 
-#: length unit name -> µm
-_LEN_UM = {"m": 1e6, "mm": 1e3, "cm": 1e4, "um": 1.0, "µm": 1.0, "μm": 1.0, "micron": 1.0,
-           "microns": 1.0, "micrometer": 1.0, "micrometre": 1.0, "nm": 1e-3, "inch": 25400.0,
-           "\\u00B5m": 1.0, "pixel": None, "": None}
-#: height unit name -> nm
-_Z_NM = {"m": 1e9, "mm": 1e6, "um": 1e3, "µm": 1e3, "μm": 1e3, "micron": 1e3, "nm": 1.0, "pm": 1e-3,
-         "a": 0.1, "å": 0.1}
+_TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+#: resolutions (per inch) that image editors and screens write by default
+_SCREEN_DPI = (72.0, 96.0, 150.0, 300.0)
 
 
 @dataclass(frozen=True)
@@ -71,37 +74,60 @@ class Image:
         return self.data.shape
 
 
-def read_image(path, pixel_size_um: float | None = None, kind: str | None = None) -> Image:
+def read_image(path, pixel_size_um: float | None = None, kind: str | None = None,
+               channel: str | None = None) -> Image:
     """Read an OM image or AFM height map.
 
     Parameters
     ----------
     path : path
-        ``.tif/.tiff``, ``.gsf``, ``.gwy`` or ``.ibw``.
+        TIFF, GSF, GWY, IBW, Bruker NanoScope, Nanosurf NID, JPK or WSxM file
+        (recognised by content).
     pixel_size_um : float, optional
         Pixel size (µm); overrides whatever the file says.
     kind : {"afm", "om"}, optional
         Overrides the guess.
+    channel : str, optional
+        Channel of a multi-channel file (``"Height"``, ``"ZSensor retrace"``);
+        default the height/topography channel, trace direction.
 
     Raises
     ------
     MarkcalError
-        Missing or unreadable file, not an image, no pixel size, all-NaN or
-        constant data. The message names the file.
+        Missing or unreadable file, not an image, unknown channel (the message
+        lists the file's channels), height unit unknown, no pixel size or a
+        lateral size without a unit, all-NaN or constant data. The message
+        names the file.
     """
     path, ext = existing_file(path)
-    readers = {".tif": _read_tiff, ".tiff": _read_tiff, ".gsf": _read_gsf, ".gwy": _read_gwy,
-               ".ibw": _read_ibw}
-    if ext not in readers:
-        raise MarkcalError(f"unknown image extension '{ext}' (use .tif, .tiff, .gsf, .gwy or .ibw)", path)
+    with open(path, "rb") as fh:
+        head = fh.read(64)
+    fmt = sniff_format(head)
+    if fmt is not None:
+        name = fmt
+        reader = lambda p: (*_spm(p, fmt, channel),)             # noqa: E731
+    else:
+        by_ext = {".tif": _read_tiff, ".tiff": _read_tiff, ".gsf": _read_gsf, ".gwy": _read_gwy, ".ibw": _read_ibw}
+        if head[:4] in _TIFF_MAGIC:
+            name, read = "tiff", _read_tiff
+        elif head.startswith(b"GWYP"):
+            name, read = "gwy", _read_gwy
+        elif head.startswith(_GSF_MAGIC[:21]):
+            name, read = "gsf", _read_gsf
+        elif ext in by_ext:                       # no magic (Igor) or a damaged file: its reader says what is wrong
+            name, read = ext[1:], by_ext[ext]
+        else:
+            raise MarkcalError("not a known image format (TIFF, GSF, GWY, IBW, Bruker NanoScope, Nanosurf NID, "
+                               "JPK, WSxM)", path)
+        reader = lambda p: read(p, channel)                      # noqa: E731
     try:
-        data, px, guess, meta = readers[ext](path)
+        data, px, guess, meta = reader(path)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
     except (ValueError, OSError, EOFError, KeyError, IndexError, TypeError, AssertionError, RuntimeError,
             UnicodeDecodeError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise MarkcalError(f"not a readable {ext[1:].upper()} image ({first})", path) from None
+        raise MarkcalError(f"not a readable {name.upper()} image ({first})", path) from None
     data = np.asarray(data, np.float64)
     if data.ndim != 2 or min(data.shape) < 8:
         raise MarkcalError(f"not a 2-D image (shape {data.shape})", path)
@@ -116,7 +142,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         px = float(pixel_size_um)
         meta = dict(meta, pixel_source="override")
     if px is None or not np.isfinite(px) or px <= 0:
-        raise MarkcalError("image has no pixel size: give --pixel-size-um", path)
+        raise MarkcalError(f"{meta.get('pixel_problem', 'image has no pixel size')}: give --pixel-size-um", path)
     if kind is not None:
         if kind not in ("afm", "om"):
             raise MarkcalError(f"kind must be afm or om, got {kind!r}", path)
@@ -126,20 +152,27 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
 
 # ----------------------------------------------------------------------------- TIFF
 
-def _unit_um(name) -> float | None:
-    if name is None:
-        return None
-    key = str(name).strip().lower().replace("\\u00b5", "µ")
-    return _LEN_UM.get(key)
+def _spm(path, fmt, channel):
+    data, px, meta = read_spm_file(path, fmt, channel)
+    return data, px, "afm", meta
 
 
-def _read_tiff(path):
+def _single_channel(name, channel):
+    """Check a requested channel against the one channel of a single-channel file."""
+    if channel is not None:
+        pick_channel([Channel(name, None, None)], channel)
+
+
+def _read_tiff(path, channel=None):
     import tifffile
     with tifffile.TiffFile(path) as tf:
+        if is_jpk(tf):
+            return _spm(path, "jpk", channel)
         page = tf.pages[0]
         arr = page.asarray()
         ij = tf.imagej_metadata or {}
         ome = tf.ome_metadata
+        fei = tf.fei_metadata or {}
         tags = page.tags
         xres = tags.get("XResolution")
         runit = tags.get("ResolutionUnit")
@@ -150,38 +183,17 @@ def _read_tiff(path):
     if arr.ndim != 2:
         raise MarkcalError(f"not a single-plane image (shape {arr.shape})")
     meta = {"format": "tiff", "dtype": str(arr.dtype)}
-    px = None
-    src = None
-    if ome:
-        m = re.search(r'PhysicalSizeX="([0-9.eE+-]+)"', ome)
-        if m:
-            u = re.search(r'PhysicalSizeXUnit="([^"]+)"', ome)
-            scale = _unit_um(u.group(1)) if u else 1.0           # OME default unit: µm
-            if scale:
-                px, src = float(m.group(1)) * scale, "ome"
-    if px is None and xres is not None:
-        num, den = xres.value if isinstance(xres.value, tuple) else (xres.value, 1)
-        per_unit = num / den if den else 0.0
-        unit_code = int(runit.value) if runit is not None else 2
-        scale = None
-        if ij.get("unit") is not None:
-            scale = _unit_um(ij.get("unit"))
-        elif unit_code == 2:
-            scale = 25400.0
-        elif unit_code == 3:
-            scale = 1e4
-        # a 72 or 96 dpi default written by an image editor is no pixel size
-        if scale and per_unit > 0 and not (unit_code == 2 and ij.get("unit") is None and per_unit in (72, 96, 300)):
-            px, src = scale / per_unit, ("imagej" if ij.get("unit") else "resolution tags")
+    px, src = _tiff_pixel_um(ome, ij, fei, xres, runit)
+    _single_channel("image", channel)
     meta["pixel_source"] = src
     if np.issubdtype(arr.dtype, np.floating):
         zunit = ij.get("zunit") or _desc_key(desc, "zunit")
         data = arr.astype(np.float64)
         fin = data[np.isfinite(data)]
         if zunit is not None:
-            if str(zunit).lower() not in _Z_NM:
+            if height_nm_per_unit(zunit) is None:
                 raise MarkcalError(f"unknown height unit '{zunit}'")
-            data = data * _Z_NM[str(zunit).lower()]
+            data = data * height_nm_per_unit(zunit)
             meta["z_unit_in_file"] = str(zunit)
         elif fin.size and np.ptp(fin) < 1e-4:
             data = data * 1e9
@@ -193,6 +205,32 @@ def _read_tiff(path):
         raise MarkcalError("binary (1-bit) image: not a micrograph")
     meta["bits"] = int(arr.dtype.itemsize * 8)
     return arr.astype(np.float64), px, "om", meta
+
+
+def _tiff_pixel_um(ome, ij, fei, xres, runit):
+    """Pixel size (µm) and its source from OME-XML, ImageJ, FEI or cm resolution tags."""
+    if ome:
+        m = re.search(r'PhysicalSizeX="([0-9.eE+-]+)"', ome)
+        if m:
+            u = re.search(r'PhysicalSizeXUnit="([^"]+)"', ome)
+            scale = length_um(u.group(1)) if u else 1.0          # OME default unit: µm
+            if scale:
+                return float(m.group(1)) * scale, "ome"
+    per_unit = 0.0
+    if xres is not None:
+        num, den = xres.value if isinstance(xres.value, tuple) else (xres.value, 1)
+        per_unit = num / den if den else 0.0
+    unit_code = int(runit.value) if runit is not None else 2
+    ij_scale = length_um(ij.get("unit")) if ij.get("unit") is not None else None
+    if ij_scale and str(ij.get("unit")).strip().lower() != "inch" and per_unit > 0:
+        return ij_scale / per_unit, "imagej"
+    pw = (fei.get("Scan") or {}).get("PixelWidth") if isinstance(fei, dict) else None
+    if pw:
+        return float(pw) * 1e6, "fei"                           # FEI/Thermo PixelWidth: m
+    # resolution tags: only centimetres, and not an editor's dpi default written in cm
+    if unit_code == 3 and per_unit > 0 and not any(abs(per_unit * 2.54 - d) < 0.01 * d for d in _SCREEN_DPI):
+        return 1e4 / per_unit, "resolution tags"
+    return None, None
 
 
 def _desc_key(desc, key):
@@ -244,45 +282,58 @@ def gsf_bytes(z, xreal_m: float, yreal_m: float, zunit: str = "m", title: str = 
     return head + z.tobytes()
 
 
-def _read_gsf(path):
+def _read_gsf(path, channel=None):
     with open(path, "rb") as fh:
         buf = fh.read()
     data, h = parse_gsf(buf)
-    xy = _unit_um(h.get("XYUnits", "m"))
+    _single_channel(h.get("Title") or "Height", channel)
+    zu = h.get("ZUnits")
+    if height_nm_per_unit(zu) is None:
+        raise MarkcalError(f"height unit ZUnits '{zu}' is not a length" if zu else "no height unit (ZUnits)")
+    meta = {"format": "gsf", "title": h.get("Title", ""), "z_unit_in_file": zu}
+    xy = length_um(h.get("XYUnits"))
+    px = None
     if xy is None:
-        raise MarkcalError(f"unknown lateral unit '{h.get('XYUnits')}'")
-    px = float(h["XReal"]) * xy / data.shape[1] if "XReal" in h else None
-    zu = h.get("ZUnits", "m").lower()
-    if zu not in _Z_NM:
-        raise MarkcalError(f"unknown height unit '{h.get('ZUnits')}'")
-    return data.astype(np.float64) * _Z_NM[zu], px, "afm", {"format": "gsf", "title": h.get("Title", ""),
-                                                              "z_unit_in_file": zu}
+        meta["pixel_problem"] = f"lateral size has no length unit (XYUnits '{h.get('XYUnits', '')}')"
+    elif "XReal" in h:
+        px = float(h["XReal"]) * xy / data.shape[1]
+    return data.astype(np.float64) * height_nm_per_unit(zu), px, "afm", meta
 
 
 # ----------------------------------------------------------------------------- GWY
 
-_HEIGHT_TITLES = ("height", "topography", "z", "zsensor", "heightretrace", "height retrace")
+def _gwy_unit(f, key):
+    u = f.get(key)
+    return (u.get("unitstr") or "") if u is not None else ""
 
 
-def _read_gwy(path):
+def _read_gwy(path, channel=None):
     import gwyfile
     obj = gwyfile.load(path)
     fields = gwyfile.util.get_datafields(obj)
     if not fields:
         raise MarkcalError("no data channel in the .gwy file")
-    title = next((t for t in fields if str(t).strip().lower() in _HEIGHT_TITLES), next(iter(fields)))
+    chans = [Channel(str(t), None, None) for t in fields]
+    try:
+        title = pick_channel(chans, channel).name
+    except MarkcalError:
+        if channel is not None:
+            raise
+        title = chans[0].name                     # one unnamed-height channel: take the first
     f = fields[title]
     data = np.asarray(f.data, np.float64)
-    xy = (f.get("si_unit_xy") or {}).get("unitstr", "m") if f.get("si_unit_xy") is not None else "m"
-    zu = (f.get("si_unit_z") or {}).get("unitstr", "m") if f.get("si_unit_z") is not None else "m"
-    xy_um = _unit_um(xy or "m")
-    if xy_um is None:
-        raise MarkcalError(f"unknown lateral unit '{xy}'")
-    if (zu or "m").lower() not in _Z_NM:
-        raise MarkcalError(f"channel '{title}' is not a height (unit '{zu}')")
-    px = float(f.xreal) * xy_um / data.shape[1] if f.xreal else None
-    return data * _Z_NM[(zu or "m").lower()], px, "afm", {"format": "gwy", "channel": str(title),
-                                                           "z_unit_in_file": zu or "m"}
+    xy, zu = _gwy_unit(f, "si_unit_xy"), _gwy_unit(f, "si_unit_z")
+    if height_nm_per_unit(zu) is None:
+        what = f"is in '{zu}', not a length" if zu else "has no height unit"
+        more = "; its lateral size has no unit either: give --pixel-size-um" if length_um(xy) is None else ""
+        raise MarkcalError(f"channel '{title}' {what}{more}")
+    meta = {"format": "gwy", "channel": title, "channels": [c.name for c in chans], "z_unit_in_file": zu}
+    px = None
+    if length_um(xy) is None:
+        meta["pixel_problem"] = f"lateral size {f.xreal:g} has no length unit"
+    elif f.xreal:
+        px = float(f.xreal) * length_um(xy) / data.shape[1]
+    return data * height_nm_per_unit(zu), px, "afm", meta
 
 
 # ----------------------------------------------------------------------------- IBW
@@ -297,7 +348,7 @@ def _ibw_note(note) -> dict:
     return out
 
 
-def _read_ibw(path):
+def _read_ibw(path, channel=None):
     from igor2 import binarywave
     w = binarywave.load(path)["wave"]
     data = np.asarray(w["wData"])
@@ -310,17 +361,16 @@ def _read_ibw(path):
                    for lab in (labels[2] if len(labels) > 2 else [])]
     layer_names = layer_names[1:] if layer_names else []        # the first is the dimension's own label
     if data.ndim == 3:
-        names_l = [n.lower() for n in layer_names]
-        pick = next((i for i, n in enumerate(names_l) if n.startswith("height")), None)
-        if pick is None:
-            pick = next((i for i, n in enumerate(names_l) if n.startswith("zsensor")), None)
-        if pick is None:
-            if layer_names:
-                raise MarkcalError(f"no Height channel among {layer_names}")
+        if layer_names:
+            chans = [_ibw_channel(n, i) for i, n in enumerate(layer_names)]
+            pick = pick_channel(chans, channel).load()
+        else:
+            _single_channel("layer 0", channel)
             pick = 0
         plane = data[:, :, pick]
         channel = layer_names[pick] if layer_names else "layer 0"
     elif data.ndim == 2:
+        _single_channel("wave", channel)
         plane, channel = data, "wave"
     else:
         raise MarkcalError(f"Igor wave has {data.ndim} dimensions, need an image")
@@ -333,8 +383,8 @@ def _read_ibw(path):
     except TypeError:
         xunit = "m"
     px = None
-    if sfa > 0 and _unit_um(xunit):
-        px = sfa * _unit_um(xunit)
+    if sfa > 0 and length_um(xunit):
+        px = sfa * length_um(xunit)
     elif "ScanSize" in note:
         px = float(note["ScanSize"]) * 1e6 / img.shape[1]
     fin = img[np.isfinite(img)]
@@ -345,3 +395,10 @@ def _read_ibw(path):
             "scan_size_um": float(note["ScanSize"]) * 1e6 if "ScanSize" in note else None,
             "imaging_mode": note.get("ImagingMode", "")}
     return img * zscale, px, "afm", meta
+
+
+def _ibw_channel(label, index) -> Channel:
+    """An Asylum layer label (``HeightRetrace``) as a channel; ``load()`` gives the layer index."""
+    m = re.match(r"(.+?)(Trace|Retrace)$", label)
+    name, direction = (m.group(1), m.group(2).lower()) if m else (label, None)
+    return Channel(name, direction, lambda: index)

@@ -1,0 +1,291 @@
+"""Readers of vendor AFM files and physical pixel sizes, against reference values and truth.
+
+Real files come from ``../shared/realdata`` (sources and licences in its README):
+Bruker NanoScope (jmarini/nanoscope, MIT; AFM-SPM/TopoStats, GPL-3.0), Nanosurf NID
+(syrupface/NSFopen, MIT), JPK and WSxM (AFM-SPM/AFMReader, LGPL-3.0), Gwyddion
+(tuxu/gwyfile, MIT), Thermo/FEI SEM TIFF (vyastreb/sem2surface, BSD-3-Clause).
+Tests that need them skip when the folder is absent. Synthetic files are written
+here byte by byte from known heights, not with markcal's code.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from markcal.pipeline.cli import main
+from markcal.stages.errors import MarkcalError
+from markcal.stages.image_io import read_image
+
+
+def _realdata() -> Path:
+    env = os.environ.get("MARKCAL_REALDATA")
+    if env:
+        return Path(env)
+    beside = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
+    return beside if beside.is_dir() else Path("/work/shared/realdata")
+
+
+REAL = _realdata()
+
+
+def _real(rel: str) -> str:
+    p = REAL / rel
+    if not p.is_file():
+        pytest.skip(f"real file {rel} not present (../shared/realdata)")
+    return str(p)
+
+
+def _quiet_afmreader():
+    afm = pytest.importorskip("AFMReader")
+    from loguru import logger
+    logger.disable("AFMReader")
+    return afm
+
+
+# ----------------------------------------------------------------------------- real files
+
+def test_bruker_nanoscope_against_reference_csv():
+    """Raw counts exactly, and jmarini/nanoscope's per-line flattened nm values within its 0.1 nm."""
+    path = _real("afm/bruker_nanoscope/full_multiple_images.txt")
+    raw_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_raw.csv", delimiter=",")
+    conv_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_converted.csv", delimiter=",")
+    im = read_image(path)
+    assert im.shape == (512, 512) and im.kind == "afm"
+    assert im.meta["channel"] == "Height retrace" and "Amplitude retrace" in im.meta["channels"]
+    assert im.pixel_um == pytest.approx(2.0 / 512, rel=1e-12)           # "Scan size: 2 2 ~m", 512 samples
+    nm_per_lsb = 0.006693481 * 12.95302                                    # header: V/LSB x Sens. Zscan nm/V
+    stored = im.data[::-1]                                                 # file order: first line = bottom
+    assert np.abs(stored / nm_per_lsb - raw_ref).max() < 1e-6
+    x = np.arange(512)
+    flat = np.array([row - np.polyval(np.polyfit(x, row, 1), x) for row in stored])
+    assert np.abs(flat - conv_ref).max() < 0.1                             # reference is rounded, 0.087 nm/LSB
+    with pytest.raises(MarkcalError, match="Amplitude retrace.*not a height"):
+        read_image(path, channel="amplitude")
+
+
+@pytest.mark.parametrize("name", ["old_bruker.002", "old_bruker.004"])
+def test_bruker_legacy_against_afmreader(name):
+    path = _real(f"afm/bruker_legacy/{name}")
+    im = read_image(path)
+    assert im.shape == (256, 256) and im.meta["channel"] == "Height trace"
+    assert im.pixel_um == pytest.approx(15.0 / 256, rel=1e-12)
+    afm = _quiet_afmreader()
+    from AFMReader.spm import load_spm
+    ref, px_nm = load_spm(path, "Height")
+    assert px_nm == pytest.approx(im.pixel_um * 1e3, rel=1e-9)
+    # pySPM scales by the soft Z scale / 2^16, markcal by the hard V/LSB value: 1.5e-5 apart
+    assert np.allclose(im.data, ref, rtol=5e-5, atol=0.01)
+    assert afm is not None
+
+
+def test_jpk_reference_values_in_nm():
+    """AFMReader 0.0.7 ``load_jpk(f, "height_trace")`` values are nm: the file's slot unit is m."""
+    path = _real("afm/jpk_wsxm/sample_0.jpk")
+    im = read_image(path)
+    assert im.shape == (256, 256) and im.meta["channel"] == "height trace" and im.meta["z_unit_in_file"] == "m"
+    assert im.pixel_um * 1e3 == pytest.approx(1.27702, abs=1e-5)
+    assert abs(im.data.min() - 3303) <= 0.5 and abs(im.data.max() - 3361) <= 0.5
+    assert abs(im.data.mean() - 3345.37) <= 0.005
+    retrace = read_image(path, channel="height_retrace")
+    assert retrace.meta["channel"] == "height retrace" and not np.array_equal(retrace.data, im.data)
+    with pytest.raises(MarkcalError, match=r"no channel 'Deflection'.*measuredHeight trace"):
+        read_image(path, channel="Deflection")
+
+
+def test_wsxm_stp_reference_and_top_equals_stp():
+    stp = read_image(_real("afm/jpk_wsxm/sample_0.stp"))
+    top = read_image(_real("afm/jpk_wsxm/sample_0.top"))
+    for im in (stp, top):
+        assert im.shape == (512, 512) and im.pixel_um * 1e3 == pytest.approx(0.9765625, rel=1e-12)
+    assert stp.data.min() == pytest.approx(-80.8, abs=0.005) and stp.data.max() == pytest.approx(-21.05, abs=0.005)
+    assert stp.data.mean() == pytest.approx(-57.4899, abs=5e-4)
+    # the int16 .top of the same scan: its full range spans "Z Amplitude: 59.7449 nm"
+    assert np.abs(top.data - stp.data).max() < 1e-6
+    # AFMReader's load_top rescales to [0, int(Z Amplitude)] = [0, 59]: its published mean follows from ours
+    assert (top.data - top.data.min()).mean() * 59 / 59.7449 == pytest.approx(23.0194, abs=5e-4)
+
+
+@pytest.mark.parametrize("name,scan_um,channel", [("grid1", 3.0, "Z-Axis trace"), ("circles", 50.0, "Topography trace"),
+                                                   ("sapphire", 2.5, "Z-Axis trace")])
+def test_nid_scan_sizes_and_nsfopen(name, scan_um, channel):
+    path = _real(f"afm/nanosurf_nid/{name}.nid")
+    im = read_image(path)
+    assert im.shape == (256, 256) and im.meta["channel"] == channel
+    assert im.pixel_um * 256 == pytest.approx(scan_um, rel=1e-9)
+    nsf = pytest.importorskip("NSFopen.read")
+    try:
+        ref = nsf.read(path).data["Image"]["Forward"][channel.split(" ")[0]]
+    except Exception as exc:                                   # NSFopen breaks with some pandas versions
+        pytest.skip(f"NSFopen cannot read {name}.nid here: {exc}")
+    # NSFopen gives m in file order; an upward scan stores the bottom line first
+    up = b"Scan direction=Up" in Path(path).read_bytes()[:20000]
+    ref = np.asarray(ref, float)[::-1] if up else np.asarray(ref, float)
+    assert np.abs(im.data - ref * 1e9).max() < 1e-6
+
+
+def test_unitless_gwy_refused_and_cli_exit_1(tmp_path, capsys):
+    path = _real("afm/gwyddion/test.gwy")
+    with pytest.raises(MarkcalError, match="--pixel-size-um"):
+        read_image(path)
+    out = str(tmp_path / "out")
+    assert main(["indents", path, "--out", out, "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("markcal: error: ") and "test.gwy" in err[0]
+    assert not os.path.exists(os.path.join(out, "summary.json"))
+
+
+def test_sem_pixel_from_fei_tag_not_dpi():
+    im = read_image(_real("sem_vickers/Indent_20230912_7kV_spot4.5_FOV100um_multiBSE_A_05.tif"))
+    assert im.meta["pixel_source"] == "fei"
+    assert im.pixel_um == pytest.approx(0.0651042, rel=1e-6)            # 100 µm field / 1536 px
+    assert im.shape == (1103, 1536) and im.kind == "om"
+
+
+# ----------------------------------------------------------------------------- TIFF resolution tags
+
+def test_tiff_dpi_tags_never_a_pixel_size(tmp_path):
+    import tifffile
+    img = (np.random.default_rng(0).random((32, 32)) * 4000).astype(np.uint16)
+    for res, unit in [((56, 1), "INCH"), ((2540, 1), "INCH"), ((72 / 2.54, 1), "CENTIMETER")]:
+        p = str(tmp_path / f"r{res[0]:.0f}{unit}.tif")
+        tifffile.imwrite(p, img, resolution=res, resolutionunit=unit)
+        with pytest.raises(MarkcalError, match="no pixel size: give --pixel-size-um"):
+            read_image(p)
+    p = str(tmp_path / "ij.tif")                                 # ImageJ unit + resolution: physical
+    tifffile.imwrite(p, img, imagej=True, resolution=(1 / 0.125, 1 / 0.125), metadata={"unit": "um"})
+    assert read_image(p).pixel_um == pytest.approx(0.125)
+
+
+# ----------------------------------------------------------------------------- synthetic Bruker and NID
+
+def _bruker_bytes(images, scan_nm, sens_nm_per_v, version="0x09300201"):
+    """A NanoScope file: text header then, per image, (name, direction, bpp, heights_nm rows top first)."""
+    offset = 8192
+    lines = ["\\*File list", f"\\Version: {version}", "\\*Scanner list", f"\\@Sens. Zscan: V {sens_nm_per_v} nm/V",
+             "\\@Sens. Amplitude: V 1.000000 "]
+    blobs = []
+    for name, direction, bpp, z_nm in images:
+        rows, cols = z_nm.shape
+        hard = 0.0125                                          # V per 16-bit LSB
+        per_lsb = hard * 65536 / 2 ** (8 * bpp) * sens_nm_per_v
+        raw = np.round(z_nm[::-1] / per_lsb).astype("<i2" if bpp == 2 else "<i4")
+        sens = "Sens. Zscan" if name != "Amplitude" else "Sens. Amplitude"
+        lines += ["\\*Ciao image list", f"\\Data offset: {offset}", f"\\Data length: {raw.nbytes}",
+                  f"\\Bytes/pixel: {bpp}", f"\\Samps/line: {cols}", f"\\Number of lines: {rows}",
+                  f"\\Scan size: {scan_nm} {scan_nm * rows / cols} nm", f"\\Line direction: {direction}",
+                  f'\\@2:Image Data: S [{name}] "{name}"',
+                  f"\\@2:Z scale: V [{sens}] ({hard} V/LSB) {hard * 65536} V"]
+        blobs.append(raw.tobytes())
+        offset += raw.nbytes
+    head = ("\r\n".join(lines + ["\\*File list end"]) + "\r\n").encode("latin-1")
+    return head.ljust(8192, b"\x1a") + b"".join(blobs)
+
+
+def test_bruker_synthetic_units_channels_orientation(tmp_path):
+    rng = np.random.default_rng(3)
+    z = np.cumsum(rng.normal(0, 2.0, (48, 64)), axis=1)               # nm, row 0 = top
+    z[:4] += 300.0                                                       # a feature at the top
+    z4 = z * 5.0
+    buf = _bruker_bytes([("Height", "Trace", 2, z), ("Height", "Retrace", 4, z4), ("Amplitude", "Trace", 2, z)],
+                        scan_nm=6400.0, sens_nm_per_v=9.5)
+    p = tmp_path / "scan.003"                                           # numbered name, found by content
+    p.write_bytes(buf)
+    im = read_image(str(p))
+    per_lsb2 = 0.0125 * 9.5
+    assert im.meta["channel"] == "Height trace" and im.pixel_um == pytest.approx(0.1)
+    assert np.abs(im.data - z).max() <= per_lsb2 / 2 + 1e-9             # quantised to half an LSB
+    assert im.data[:4].mean() > im.data[4:].mean() + 250                 # top row on top
+    r4 = read_image(str(p), channel="height retrace")
+    assert np.abs(r4.data - z4).max() <= per_lsb2 / 65536 / 2 + 1e-9     # 32-bit: finer LSB
+    with pytest.raises(MarkcalError, match="not a height"):
+        read_image(str(p), channel="Amplitude")
+    trunc = tmp_path / "cut.spm"
+    trunc.write_bytes(buf[:-100])
+    with pytest.raises(MarkcalError, match="truncated"):
+        read_image(str(trunc), channel="Amplitude")
+    with pytest.raises(MarkcalError, match=r"cut\.spm: .*truncated"):
+        read_image(str(trunc))
+
+
+def _nid_bytes(chans, size_m, bits=32):
+    """A Nanosurf NID: INI header, '#!', then each channel's signed integers (rows top first)."""
+    head = ["[DataSet]", "Version=2", "GroupCount=1", "Gr0-Name=Scan forward", "Gr0-ID=0",
+            f"Gr0-Count={len(chans)}"]
+    head += [f"Gr0-Ch{i}=DataSet-0:{i}" for i in range(len(chans))]
+    head += ["", "[DataSet\\DataSetInfos\\Scan]", "Scan direction=Down", ""]
+    data = []
+    for i, (name, unit, vals) in enumerate(chans):
+        rows, cols = vals.shape
+        lo, rng = float(vals.min()), float(np.ptp(vals))
+        raw = np.round((vals - lo) / rng * (2.0 ** bits - 1) - 2.0 ** (bits - 1)).astype("<i4")
+        head += [f"[DataSet-0:{i}]", f"Points={cols}", f"Lines={rows}", "Dim0Unit=m", f"Dim0Range={size_m}",
+                 "Dim1Unit=m", f"Dim1Range={size_m * rows / cols}", f"Dim2Name={name}", f"Dim2Unit={unit}",
+                 f"Dim2Range={rng}", f"Dim2Min={lo}", "SaveMode=Binary", f"SaveBits={bits}", "SaveSign=Signed", ""]
+        data.append(raw.tobytes())
+    return "\r\n".join(head).encode("utf-8") + b"#!" + b"".join(data)
+
+
+def test_nid_synthetic_units_and_refusals(tmp_path):
+    rng = np.random.default_rng(4)
+    z_um = rng.normal(0.0, 0.2, (32, 40))
+    amp_v = rng.random((32, 40))
+    p = tmp_path / "m.nid"
+    p.write_bytes(_nid_bytes([("Topography", "µm", z_um), ("Amplitude", "V", amp_v)], size_m=8e-6))
+    im = read_image(str(p))
+    assert im.meta["channel"] == "Topography trace" and im.pixel_um == pytest.approx(0.2)
+    assert np.abs(im.data - z_um * 1e3).max() < 1e-5                    # µm -> nm, 32-bit quantisation
+    with pytest.raises(MarkcalError, match="'V', not a height"):
+        read_image(str(p), channel="amplitude")
+    with pytest.raises(MarkcalError, match=r"no channel 'Phase' in the file \(channels: Topography trace, Amp"):
+        read_image(str(p), channel="Phase")
+    p.write_bytes(_nid_bytes([("Topography", "µm", z_um)], size_m=8e-6)[:-64])
+    with pytest.raises(MarkcalError, match="truncated"):
+        read_image(str(p))
+
+
+# ----------------------------------------------------------------------------- cross-checks of two readers
+
+def test_gwyfile_and_afmreader_agree_on_gwy(tmp_path):
+    """markcal-independent: gwyfile and AFMReader read the same written .gwy alike; markcal gives nm."""
+    from gwyfile.objects import GwyContainer, GwyDataField
+    z_m = np.random.default_rng(5).normal(0, 5e-9, (64, 64))
+    obj = GwyContainer()
+    obj["/0/data/title"] = "Height"
+    obj["/0/data"] = GwyDataField(z_m, xreal=3.2e-6, yreal=3.2e-6, si_unit_xy="m", si_unit_z="m")
+    path = str(tmp_path / "h.gwy")
+    obj.tofile(path)
+    _quiet_afmreader()
+    from AFMReader.gwy import load_gwy
+    import gwyfile
+    a, px_nm = load_gwy(path, "Height")
+    b = gwyfile.util.get_datafields(gwyfile.load(path))["Height"].data
+    assert np.allclose(np.asarray(a), np.asarray(b) * 1e9, rtol=1e-12) and px_nm == pytest.approx(50.0)
+    im = read_image(path)
+    assert np.allclose(im.data, z_m * 1e9, atol=1e-9) and im.pixel_um == pytest.approx(0.05)
+
+
+def test_igor2_and_afmreader_agree_on_asylum_ibw(tmp_path):
+    from igor2 import binarywave
+
+    from markcal.fixtures.indent_maps import AfmOptions, asylum_ibw, render_afm
+    r = render_afm(6, AfmOptions(rows=1, cols=1, size_px=64, field_um=4.0, nominal_um=1.0))
+    path = str(tmp_path / "a.ibw")
+    with open(path, "wb") as fh:
+        fh.write(asylum_ibw(r))
+    _quiet_afmreader()
+    from AFMReader.ibw import load_ibw
+    a, px_nm = load_ibw(path, "HeightRetrace")
+    w = binarywave.load(path)["wave"]
+    names = [n.decode() for n in w["labels"][2][1:]]
+    b = np.asarray(w["wData"])[:, :, names.index("HeightRetrace")]
+    # AFMReader: rotated so row 0 is the top, in nm
+    assert np.allclose(np.asarray(a), b.T[::-1] * 1e9, rtol=1e-6) and px_nm == pytest.approx(4000 / 64, rel=1e-6)
+    im = read_image(path)
+    assert np.allclose(im.data, np.asarray(a), rtol=1e-6, atol=1e-6)
+    zs = read_image(path, channel="zsensor")
+    assert zs.meta["channel"] == "ZSensorRetrace"
+    with pytest.raises(MarkcalError, match="no channel 'Deflection'.*Height retrace, Amplitude retrace"):
+        read_image(path, channel="Deflection")
