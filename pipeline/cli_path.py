@@ -8,30 +8,13 @@ from markcal.stages.errors import MarkcalError
 
 def cmd_path(args) -> int:
     from markcal.pipeline.progress import progress
-    from markcal.pipeline.flows.path import PathOptions, run_path
-    from markcal.reports.path_outputs import write_path_outputs
-    from markcal.stages.path_ga import GAOptions
-    from markcal.stages.path_job import Timing
-    from markcal.stages.path_tour import LocalSearchOptions
+    from markcal.pipeline.registry import get_flow, run_and_write
 
     say = progress(args.quiet)
-    timing = Timing(metric=args.metric, jump_speed_mm_s=args.jump_speed_mm_s, settle_s=args.settle_us * 1e-6,
-                    mark_speed_mm_s=args.mark_speed_mm_s, point_dwell_s=args.dwell_us * 1e-6)
-    for k in ("generations", "population", "ga_max_strokes"):
-        if getattr(args, k) < 1:
-            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
-    if args.kicks_per_stroke < 0:
-        raise MarkcalError("--kicks-per-stroke must be >= 0")
-    opt = PathOptions(method=args.method, seed=args.seed, timing=timing,
-                      ga=GAOptions(population=args.population, generations=args.generations),
-                      ls=LocalSearchOptions(kicks_per_stroke=args.kicks_per_stroke),
-                      ga_max_strokes=args.ga_max_strokes, tolerance_mm=args.tolerance_mm,
-                      keep_layer_order=args.keep_layer_order)
-    res = run_path(args.job, opt, progress=say)
+    options = {k: getattr(args, k) for k in get_flow("path").descriptor.options if getattr(args, k) is not None}
+    res, paths = run_and_write("path", args.job, args.out, options=options, progress=say)
     for n in res.notes:
         say(f"note: {n}")
-    say("writing ordered job and report")
-    paths = write_path_outputs(res, args.out, report=not args.no_report)
     s = res.summary
     say(f"{res.method_used}: jumps {s['jump_length_mm']:.2f} mm ({s['length_reduction_vs_input_pct']:.1f} % "
         f"shorter than input, {s['length_reduction_vs_raster_pct']:.1f} % than raster), "
@@ -72,29 +55,30 @@ def register(sub, render_sub) -> None:
     """Add ``path`` to the top-level sub-commands and ``path`` to ``render``."""
     from markcal.pipeline.flows.path import ALIASES, METHODS
 
-    p = sub.add_parser("path", help="marking job -> marking order with short jumps (GA, local search), report")
+    p = sub.add_parser("path", help="marking job -> marking order with short jumps (GA, local search), report",
+                       description="Defaults of the options are the path flow's (see the README, 'markcal path').")
     p.add_argument("job", help="job file: .json strokes (point / polyline / contour, mm), .csv points (x_mm,y_mm), "
                                ".dxf, .svg, .plt/.hpgl or G-code (.gcode, .nc, .ngc)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--method", default="auto", choices=list(METHODS) + sorted(ALIASES),
+    p.add_argument("--method", default=None, choices=list(METHODS) + sorted(ALIASES),
                    help="order written out: auto (default) = local search from nearest neighbour (ls); "
                         "the paper GA (ga), GA then local search (ga+ls, alias ga+2opt), or a baseline")
-    p.add_argument("--tolerance-mm", type=float, default=0.01,
+    p.add_argument("--tolerance-mm", type=float, default=None,
                    help="chordal tolerance for flattening arcs, circles, ellipses, splines and Béziers (mm)")
     p.add_argument("--keep-layer-order", action="store_true",
                    help="order only inside each layer / group / pen; layers marked in input order")
-    p.add_argument("--seed", type=int, default=0, help="seed of the GA and the local-search kicks")
-    p.add_argument("--metric", choices=["distance", "time"], default="distance",
+    p.add_argument("--seed", type=int, default=None, help="seed of the GA and the local-search kicks")
+    p.add_argument("--metric", choices=["distance", "time"], default=None,
                    help="minimise jump length or jump time (speed + settle)")
-    p.add_argument("--jump-speed-mm-s", type=float, default=3000.0, help="galvo jump speed (mm/s)")
-    p.add_argument("--settle-us", type=float, default=200.0, help="settle delay after each jump (µs)")
-    p.add_argument("--mark-speed-mm-s", type=float, default=1000.0, help="marking speed (mm/s)")
-    p.add_argument("--dwell-us", type=float, default=500.0, help="laser dwell per point (µs)")
-    p.add_argument("--generations", type=int, default=3000, help="GA generations")
-    p.add_argument("--population", type=int, default=100, help="GA population size")
-    p.add_argument("--ga-max-strokes", type=int, default=500,
+    p.add_argument("--jump-speed-mm-s", type=float, default=None, help="galvo jump speed (mm/s)")
+    p.add_argument("--settle-us", type=float, default=None, help="settle delay after each jump (µs)")
+    p.add_argument("--mark-speed-mm-s", type=float, default=None, help="marking speed (mm/s)")
+    p.add_argument("--dwell-us", type=float, default=None, help="laser dwell per point (µs)")
+    p.add_argument("--generations", type=int, default=None, help="GA generations")
+    p.add_argument("--population", type=int, default=None, help="GA population size")
+    p.add_argument("--ga-max-strokes", type=int, default=None,
                    help="larger jobs fall back from the GA to local search")
-    p.add_argument("--kicks-per-stroke", type=float, default=50.0,
+    p.add_argument("--kicks-per-stroke", type=float, default=None,
                    help="iterated local search: kicks per stroke (at least 20,000, at most 200,000 in all; 0: none)")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

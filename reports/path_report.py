@@ -8,9 +8,9 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.collections import LineCollection
 
-from markcal.pipeline.flows.path import pct_less
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.path_job import tour_points
+from markcal.stages.stats import pct_less
 
 __all__ = ["render_path_report_html"]
 

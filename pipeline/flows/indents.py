@@ -16,6 +16,7 @@ import numpy as np
 from markcal.stages import indent as ind
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.pipeline.config import check_sections, load_toml
+from markcal.stages.afm_files import sniff_format
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
@@ -307,8 +308,20 @@ def _summary(files, failed, t, spec, opt, runtime_s):
     return out
 
 
+#: extensions of the height maps and micrographs the flow reads (others are recognised by content)
+MAP_EXTENSIONS = (".tif", ".tiff", ".gsf", ".gwy", ".ibw", ".spm", ".nid", ".jpk", ".stp", ".top")
+
+
 def _claims(path) -> bool:
-    return file_ext(path) in (".tif", ".tiff", ".gsf", ".gwy", ".ibw")
+    e = file_ext(path)
+    if e in MAP_EXTENSIONS or (len(e) == 4 and e[1:].isdigit()):       # Bruker .000 - .999
+        return True
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(4096)
+    except OSError:
+        return False
+    return sniff_format(head) is not None
 
 
 def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:

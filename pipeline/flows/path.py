@@ -26,6 +26,7 @@ from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour,
 from markcal.stages.path_layers import join_group_tours, split_groups
 from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, n_kicks_for, \
     nearest_neighbour_tour, raster_tour
+from markcal.stages.stats import pct_less
 
 #: methods a user can choose; ``auto`` (the default) is the local search, ``ga+2opt`` another name of ``ga+ls``
 METHODS = ("auto", "input", "raster", "nn", "ls", "ga", "ga+ls")
@@ -336,11 +337,6 @@ def _run(inp: JobFile, source: str, opt: PathOptions, method: str, say, t0) -> P
     return PathResult(source, inp, opt, used, tours, stats, rt, ga, dups, notes, summary, layered)
 
 
-def pct_less(new, old):
-    """How much smaller ``new`` is than ``old``, in % (0 when ``old`` is 0)."""
-    return float(100.0 * (1.0 - new / old)) if old > 0 else 0.0
-
-
 def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime_s) -> dict:
     job = inp.job
     tm = opt.timing
@@ -386,10 +382,13 @@ def _summary(inp, source, opt, method, used, stats, rt, ga, dups, notes, runtime
 
 
 def _claims(path) -> bool:
-    if file_ext(path) == ".csv":             # a point job: x_mm,y_mm[,...] without z
+    e = file_ext(path)
+    if e == ".csv":             # a point job: x_mm,y_mm[,...] without z
         h = csv_header(path)
         return h[:2] == ["x_mm", "y_mm"] and "z_mm" not in h
-    if file_ext(path) != ".json" or os.path.getsize(path) > 50_000_000:
+    if e in FORMATS and FORMATS[e] in ("dxf", "svg", "hpgl", "gcode"):
+        return True
+    if e != ".json" or os.path.getsize(path) > 50_000_000:
         return False
     try:
         with open(path, encoding="utf-8") as fh:
@@ -399,12 +398,30 @@ def _claims(path) -> bool:
     return isinstance(d, dict) and "strokes" in d
 
 
+def path_options(o: dict) -> PathOptions:
+    """:class:`PathOptions` from the descriptor's option dict (CLI or batch.toml); checks the values."""
+    for k in ("generations", "population", "ga_max_strokes"):
+        if o[k] < 1:
+            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
+    if not o["kicks_per_stroke"] >= 0:
+        raise MarkcalError("--kicks-per-stroke must be >= 0")
+    timing = Timing(metric=o["metric"], jump_speed_mm_s=o["jump_speed_mm_s"], settle_s=o["settle_us"] * 1e-6,
+                    mark_speed_mm_s=o["mark_speed_mm_s"], point_dwell_s=o["dwell_us"] * 1e-6)
+    return PathOptions(method=o["method"], seed=int(o["seed"]), timing=timing,
+                       ga=GAOptions(population=int(o["population"]), generations=int(o["generations"])),
+                       ls=LocalSearchOptions(kicks_per_stroke=o["kicks_per_stroke"]),
+                       ga_max_strokes=int(o["ga_max_strokes"]), tolerance_mm=o["tolerance_mm"],
+                       keep_layer_order=o["keep_layer_order"])
+
+
 FLOW = FlowDescriptor(
-    name="path", help="marking-order optimisation of galvo jobs",
+    name="path", help="marking job -> marking order with short jumps (GA, local search), report",
     claims=_claims,
-    run=lambda path, spec, options, progress=None: run_path(
-        path, PathOptions(method=options["method"], seed=int(options["seed"])), progress=progress),
-    options={"method": "ga+ls", "seed": 0, "no_report": False},
+    run=lambda path, spec, options, progress=None: run_path(path, path_options(options), progress=progress),
+    options={"method": "auto", "seed": 0, "tolerance_mm": 0.01, "keep_layer_order": False, "metric": "distance",
+             "jump_speed_mm_s": 3000.0, "settle_us": 200.0, "mark_speed_mm_s": 1000.0, "dwell_us": 500.0,
+             "generations": 3000, "population": 100, "ga_max_strokes": 500, "kicks_per_stroke": 50.0,
+             "no_report": False},
     key_figures=(Figure("jump_length_mm", "jump length", "mm"),
                  Figure("length_reduction_vs_input_pct", "jump length reduction vs input order", "%"),
                  Figure("time_s", "marking time", "s")),
