@@ -3,7 +3,7 @@
 The physical model follows paper 004 sec. 2.3: the controller turns a commanded
 position into mirror angles with its nominal geometry (eqs. 3-4, ``d0``, ``e0``);
 the real scanner has its own distances d and e, mirror gains and zero offsets,
-axis coupling, and a low-order lens term, and lands by eqs. 1-2. Its 11
+axis coupling, and a low-order lens term, and lands by eqs. 1-2. Its 13
 parameters are fitted by nonlinear least squares (Levenberg-Marquardt, with a
 very weak prior that only pins directions the data cannot see). A smoothing
 thin-plate spline, smoothing chosen by leave-one-out CV, takes up what is left.
@@ -26,7 +26,7 @@ from .grid_smooth import Poly3, ThinPlate, fit_poly3, fit_thin_plate, frame_of
 
 KINDS = ("physical+rbf", "rbf", "poly3")
 PARAM_NAMES = ("dd_mm", "de_mm", "gain_x_err", "gain_y_err", "zero_x_rad", "zero_y_rad", "coupling_xy",
-               "coupling_yx", "lens_k3_mm", "lens_p1_mm", "lens_p2_mm")
+               "coupling_yx", "lens_k3_mm", "lens_p1_mm", "lens_p2_mm", "tilt_x", "tilt_y")
 
 
 @dataclass(frozen=True)
@@ -35,7 +35,8 @@ class PhysicalGalvo:
 
     d = d0 + dd, e = e0 + de; optical angles theta_x = 2 ((1 + gain_x_err) alpha_x
     + zero_x + coupling_xy alpha_y), theta_y likewise; lens: with u = x / radius,
-    dx = k3 r_u^2 u + p1 (r_u^2 + 2 u^2) + 2 p2 u v (and symmetric for y).
+    dx = k3 r_u^2 u + p1 (r_u^2 + 2 u^2) + 2 p2 u v (and symmetric for y); a plate
+    tilted by tan(tilt) about y and x then scales the landing by 1 / (1 - (tilt_x x + tilt_y y) / d).
     """
 
     d0_mm: float
@@ -57,21 +58,31 @@ class PhysicalGalvo:
                    np.array([float(d[k]) for k in PARAM_NAMES]))
 
 
+def nominal_geometry(lens_mm: float) -> tuple:
+    """A typical controller geometry (d, e in mm) for a lens field of ``lens_mm``.
+
+    d is about an f-theta lens's focal length (1.45 x the field), e a 10-25 mm
+    mirror spacing; used when the user does not give the controller's values.
+    """
+    return 1.45 * lens_mm, 10.0 + 0.04 * lens_mm
+
+
 def _land(cmd, p, d0, e0, radius):
-    dd, de, gx, gy, zx, zy, cxy, cyx, k3, p1, p2 = p
+    dd, de, gx, gy, zx, zy, cxy, cyx, k3, p1, p2, sx, sy = p
     ax, ay, _ = galvo.inverse(cmd[:, 0], cmd[:, 1], d0, e0)
     tx = 2.0 * ((1.0 + gx) * ax + zx + cxy * ay)
     ty = 2.0 * ((1.0 + gy) * ay + zy + cyx * ax)
     x, y = galvo.forward(tx, ty, d0 + dd, e0 + de)
     u, v = x / radius, y / radius
     r2 = u * u + v * v
-    return np.column_stack([x + k3 * r2 * u + p1 * (r2 + 2 * u * u) + 2 * p2 * u * v,
-                            y + k3 * r2 * v + p2 * (r2 + 2 * v * v) + 2 * p1 * u * v])
+    out = np.column_stack([x + k3 * r2 * u + p1 * (r2 + 2 * u * u) + 2 * p2 * u * v,
+                           y + k3 * r2 * v + p2 * (r2 + 2 * v * v) + 2 * p1 * u * v])
+    return out / (1.0 - (sx * out[:, :1] + sy * out[:, 1:]) / (d0 + dd))
 
 
 def _prior_sigma(d0, e0, radius):
     return np.array([0.05 * d0, 0.3 * e0 + 5.0, 0.05, 0.05, 0.01, 0.01, 0.01, 0.01,
-                     0.05 * radius, 0.05 * radius, 0.05 * radius])
+                     0.05 * radius, 0.05 * radius, 0.05 * radius, 0.05, 0.05])
 
 
 def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: float,
@@ -248,5 +259,5 @@ def hull_distance_mm(points_mm: np.ndarray, hull_of_mm: np.ndarray) -> np.ndarra
     return np.maximum(d.max(axis=1), 0.0)
 
 
-__all__ = ["KINDS", "PARAM_NAMES", "PhysicalGalvo", "fit_physical", "GridModel", "fit_model", "fold_labels",
+__all__ = ["KINDS", "nominal_geometry", "PARAM_NAMES", "PhysicalGalvo", "fit_physical", "GridModel", "fit_model", "fold_labels",
            "cross_validate", "rms_mm", "ModelChoice", "choose_model", "hull_distance_mm", "frame_of"]
