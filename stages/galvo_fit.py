@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from . import galvo
 from .errors import MarkcalError
@@ -100,6 +99,7 @@ def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: f
     start : ndarray, optional
         Starting parameters (default: the nominal machine).
     """
+    from scipy.optimize import least_squares      # here: the CLI imports this module to list the models
     cmd = np.asarray(cmd_mm, float)
     land = np.asarray(land_mm, float)
     radius = float(max(np.max(np.abs(cmd)), 1.0))
