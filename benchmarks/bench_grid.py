@@ -104,6 +104,17 @@ def comparison(folder: str, seeds: int = 2) -> None:
           "noise-free landings")
 
 
+#: the same two commands through a parser that registers only their modules (what lazy registration would cost)
+LEAN_CLI = ("import argparse, sys\n"
+            "from markcal.pipeline import cli_export, cli_grid\n"
+            "from markcal.pipeline.cli import main\n"
+            "ap = argparse.ArgumentParser(); sub = ap.add_subparsers(dest='command', required=True)\n"
+            "rs = sub.add_parser('render').add_subparsers()\n"
+            "cli_grid.register(sub, rs); cli_export.register(sub, rs)\n"
+            "import markcal.pipeline.cli as c; c.build_parser = lambda: ap\n"
+            "sys.exit(main(sys.argv[1:]))\n")
+
+
 def speed(folder: str, repeats: int) -> None:
     print("\n3. 81 marks -> .cor as commands (median of %d; goal <= 1 s together)" % repeats)
     r = render_grid(0, GridRenderOptions(n_missing=0))
@@ -127,6 +138,16 @@ def speed(folder: str, repeats: int) -> None:
             te.append(t2 - t1)
         tot = np.array(tg) + np.array(te)
         print(f"{label:17s}: grid {np.median(tg):.3f} s + export cor {np.median(te):.3f} s = {np.median(tot):.3f} s")
+    lean = [sys.executable, "-c", LEAN_CLI]
+    tl = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        subprocess.run(lean + ["grid", path, "--out", out, "--quiet", "--lens-mm", "110", "--no-report"], check=True,
+                       stdout=subprocess.DEVNULL)
+        subprocess.run(lean + ["export", "cor", out, "--lens-mm", "110", "--out", cor, "--quiet"], check=True,
+                       stdout=subprocess.DEVNULL)
+        tl.append(time.perf_counter() - t0)
+    print(f"--no-report through a parser holding only grid and export: {np.median(tl):.3f} s together")
     th = []
     for _ in range(repeats):
         t0 = time.perf_counter()

@@ -2,7 +2,8 @@
 
 The folder has the layout ``markcal export`` reads from a scan flow folder
 (``fiducials.csv`` with nominal and measured positions, ``model.json``,
-``summary.json``); ``model.json`` holds a grid model (``markcal-grid-model-1``)
+``summary.json``) and, for ``export a3200``, the selfcal flow's ``stage_error.csv``
+(the command offset over the lens field, µm); ``model.json`` holds a grid model (``markcal-grid-model-1``)
 with the region where it is valid (the whole lens field).
 """
 from __future__ import annotations
@@ -44,7 +45,8 @@ def write_grid_outputs(result, out_dir, report: bool = True) -> dict:
     """
     os.makedirs(out_dir, exist_ok=True)
     p = {name: os.path.join(out_dir, name) for name in (
-        "fiducials.csv", "deviations.csv", "correction_grid.csv", "model.json", "report.html", "summary.json")}
+        "fiducials.csv", "deviations.csv", "correction_grid.csv", "stage_error.csv", "model.json", "report.html",
+        "summary.json")}
     start_outputs(out_dir)
     f = result.fiducials
     write_csv(p["fiducials.csv"], {k: f[k] for k in FIDUCIAL_COLUMNS})
@@ -54,6 +56,11 @@ def write_grid_outputs(result, out_dir, report: bool = True) -> dict:
     write_csv(p["correction_grid.csv"], {"x_mm": xy[:, 0], "y_mm": xy[:, 1], "dx_mm": dxy[:, 0], "dy_mm": dxy[:, 1],
                                          "outside_hull_mm": result.grid_hull_mm,
                                          "extrapolated": result.extrapolated.astype(int)})
+    # the selfcal flow's layout (command x + G to reach x, µm) so that `markcal export a3200` reads the galvo too
+    xs, ys = np.unique(xy[:, 0]), np.unique(xy[:, 1])
+    write_csv(p["stage_error.csv"], {"m": np.searchsorted(ys, xy[:, 1]), "n": np.searchsorted(xs, xy[:, 0]),
+                                     "x_mm": xy[:, 0], "y_mm": xy[:, 1],
+                                     "gx_um": 1e3 * dxy[:, 0], "gy_um": 1e3 * dxy[:, 1]})
     write_json(p["model.json"], model_document(result))
     if report:
         from .grid_report import render_grid_report_html

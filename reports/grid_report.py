@@ -19,6 +19,7 @@ DATA_FILES = (
     ("deviations.csv", "per-mark deviations δ = nominal − measured (mm)"),
     ("correction_grid.csv", "command offsets (mm) on a grid over the whole lens field; extrapolated = more than "
                             "one pitch outside the marks' hull"),
+    ("stage_error.csv", "the same command offsets in µm, in the selfcal flow's layout (for markcal export a3200)"),
     ("model.json", "the fitted model (physical galvo parameters, spline or cubic); markcal export reads it"),
     ("summary.json", "the summary values of this report"),
 )
@@ -91,7 +92,7 @@ def _deviation_figure(result) -> str:
     x, y, dx, dy = (np.asarray(f[k], float) for k in ("x_nom_mm", "y_nom_mm", "dx_mm", "dy_mm"))
     mag = np.hypot(dx, dy)
     mmax = float(mag.max()) if len(mag) else 0.0
-    k = nice_number(0.8 * result.pitch_mm / mmax) if mmax > 0 else 1.0
+    k = nice_number(0.9 * result.pitch_mm / mmax) if mmax > 0 else 1.0
     fig = new_figure(7.2, 6.2)
     ax = fig.add_subplot(111)
     h = result.lens_mm / 2
