@@ -108,6 +108,15 @@ def test_grid_to_cor_on_the_true_machine(tmp_path, seed, mirror):
     _, field = correction_residual(machine, table.command, 55, 55, 2.0)
     assert _rms(inside) <= 0.03 < _rms(before_in)
     assert _rms(field) <= 0.08
+    if not mirror:
+        return
+    # the other formats read the same folder
+    from markcal.pipeline.flows.export import inspect_table
+    for fmt, extra in (("ctb", ["--ctb-content", "offset"]), ("correxion", ["--fill-missing"]), ("a3200", [])):
+        assert main(["export", fmt, str(out), "--lens-mm", "110", "--out", str(tmp_path / f"t.{fmt}"), "--quiet",
+                     *extra]) == 0
+    a3 = inspect_table(tmp_path / "t.a3200")
+    assert np.nanmax(np.hypot(a3.u, a3.v)) == pytest.approx(1e3 * s["max_correction_mm"], abs=1e-3)
 
 
 def test_missing_marks_and_units_input(tmp_path):
