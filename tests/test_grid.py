@@ -218,3 +218,13 @@ def test_bad_inputs(tmp_path, capsys):
     sheet = tmp_path / "sheet"
     main(["render", "grid-job", "--out", str(sheet)])
     _fails(capsys, sheet / "measure.csv", out, ["only 0 measured"])
+
+
+def test_nine_marks_are_enough(tmp_path):
+    """The smallest grid the issue allows (3 x 3) runs, with fewer folds, and the model beats the spline."""
+    src, truth = _render_cli(tmp_path, "--rows", "3", "--cols", "3", "--missing", "0", "--seed", "2")
+    out = tmp_path / "out"
+    assert main(["grid", str(src / "measured.csv"), "--out", str(out), "--quiet", "--no-report"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_marks"] == 9 and s["folds"] == 4
+    assert s["cv_rmse_physical_rbf_mm"] < s["cv_rmse_rbf_mm"]

@@ -110,8 +110,9 @@ def run_grid(path, options: GridOptions | None = None, progress=None) -> GridRes
 
 
 def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResult:
-    if opt.folds < 2 or len(grid.cmd_mm) < 2 * opt.folds:
-        raise MarkcalError(f"{len(grid.cmd_mm)} marks are too few for {opt.folds}-fold cross-validation")
+    if opt.folds < 2:
+        raise MarkcalError(f"--folds must be at least 2 (got {opt.folds})")
+    folds = min(opt.folds, len(grid.cmd_mm) // 2)       # a small grid: fewer folds, at least two marks in each
     cmd = grid.cmd_mm
     dist, _ = cKDTree(cmd).query(cmd, k=2)
     pitch = float(np.median(dist[:, 1]))
@@ -140,8 +141,8 @@ def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResu
             f"{res[worst]:.2f} mm from where the fitted galvo puts it, more than a third of the pitch "
             f"({pitch:.2f} mm): wrong row/column numbering or a swapped measurement?")
 
-    say(f"fitting and cross-validating {', '.join(KINDS)} ({opt.folds}-fold)")
-    choice = choose_model(opt.model, cmd, land, d0, e0, opt.folds, opt.seed)
+    say(f"fitting and cross-validating {', '.join(KINDS)} ({folds}-fold)")
+    choice = choose_model(opt.model, cmd, land, d0, e0, folds, opt.seed)
     model = choice.model
     fitted = model.land(cmd)
 
@@ -174,7 +175,7 @@ def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResu
         "registration_rms_proper_mm": rms_proper, "registration_rms_mirrored_mm": rms_mirror,
         "rms_mm": full["rms_mm"], "max_mm": full["max_mm"], "rms_x_mm": full["rms_x_mm"],
         "rms_y_mm": full["rms_y_mm"], "max_x_mm": full["max_x_mm"], "max_y_mm": full["max_y_mm"],
-        "model_requested": opt.model, "model": model.kind, "folds": opt.folds,
+        "model_requested": opt.model, "model": model.kind, "folds": folds,
         "cv_rmse_mm": choice.cv_rmse_mm[model.kind],
         **{f"cv_rmse_{k.replace('+', '_')}_mm": v for k, v in choice.cv_rmse_mm.items()},
         "fit_rms_mm": rms_mm(fitted - land),
