@@ -104,8 +104,8 @@ def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: f
     land = np.asarray(land_mm, float)
     radius = float(max(np.max(np.abs(cmd)), 1.0))
     sig = _prior_sigma(d0_mm, e0_mm, radius)
-    # a prior a thousand times weaker than a 1 µm residual per sigma: pins only unseen directions
-    w_prior = 1e-3 * 1e-3
+    # a parameter one prior sigma away costs as much as a 10 µm residual: pins only what the data cannot see
+    w_prior = 1e-2
 
     def resid(p):
         return np.r_[(_land(cmd, p, d0_mm, e0_mm, radius) - land).ravel(), w_prior * p / sig]
