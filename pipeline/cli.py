@@ -16,6 +16,7 @@ COMMAND_MODULES: tuple = (
     "markcal.pipeline.cli_pmcal",
     "markcal.pipeline.cli_path",
     "markcal.pipeline.cli_servo",
+    "markcal.pipeline.cli_grid",
     "markcal.pipeline.cli_export",
     "markcal.pipeline.cli_batch",
 )

@@ -134,3 +134,26 @@ def robust_rigid_fit(src_mm: np.ndarray, dst_mm: np.ndarray, outlier_mm: float =
         used = new
         tf = rigid_fit(src_mm[used], dst_mm[used])
     return tf, used
+
+
+def rigid_or_mirrored_fit(src_mm: np.ndarray, dst_mm: np.ndarray) -> tuple:
+    """Best rigid transform src -> dst, with a reflection when that fits much better.
+
+    A measurement taken from the back of a plate (scanned face down) is the
+    mirror image of the marked grid; it registers only through a reflection.
+
+    Returns
+    -------
+    Rigid2D, float, float
+        The chosen transform and the RMS residuals (mm) of the proper and the
+        mirrored fit; the mirrored one is chosen when its RMS is below half the
+        proper one's.
+    """
+    src = np.asarray(src_mm, float)
+    dst = np.asarray(dst_mm, float)
+    proper = rigid_fit(src, dst)
+    flip = np.diag([1.0, -1.0])
+    m = rigid_fit(src @ flip, dst)
+    mirrored = Rigid2D(rotation=m.rotation @ flip, translation_mm=m.translation_mm)
+    rms = [float(np.sqrt(np.mean(np.sum((t.apply(src) - dst) ** 2, axis=1)))) for t in (proper, mirrored)]
+    return (mirrored if rms[1] < 0.5 * rms[0] else proper), rms[0], rms[1]

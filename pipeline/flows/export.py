@@ -56,16 +56,40 @@ def _need(folder, name, what):
     return p
 
 
+def _load_galvo_model(path) -> tuple:
+    """The correction model of model.json and the region it declares valid (None: the fiducials' span).
+
+    The scan flow writes an RBF network; the grid flow a ``markcal-grid-model-1``
+    model valid over the whole lens field.
+    """
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise MarkcalError(f"cannot read model: {exc}", path) from None
+    if isinstance(doc, dict) and isinstance(doc.get("model"), dict) and doc["model"].get("format") == "markcal-grid-model-1":
+        from markcal.stages.galvo_fit import GridModel
+        try:
+            region = tuple(float(v) for v in doc["valid_region_mm"])
+            model = GridModel.from_dict(doc["model"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise MarkcalError(f"not a markcal grid model: {exc}", path) from None
+        except MarkcalError as exc:
+            raise exc.with_path(path) from None
+        return model, region
+    return load_model(path), None
+
+
 def load_scan_source(folder) -> ScanSource:
     """Read a scan flow output folder."""
     folder = os.fspath(folder)
-    model = load_model(_need(folder, "model.json", "scan flow"))
+    model, region = _load_galvo_model(_need(folder, "model.json", "scan flow"))
     f = read_table(_need(folder, "fiducials.csv", "scan flow"),
                    ("row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm"), int_columns=("row", "col"))
     with open(_need(folder, "summary.json", "scan flow"), encoding="utf-8") as fh:
         summary = json.load(fh)
-    region = (float(f["x_nom_mm"].min()), float(f["x_nom_mm"].max()),
-              float(f["y_nom_mm"].min()), float(f["y_nom_mm"].max()))
+    region = region or (float(f["x_nom_mm"].min()), float(f["x_nom_mm"].max()),
+                        float(f["y_nom_mm"].min()), float(f["y_nom_mm"].max()))
     return ScanSource(folder, model, region, f, summary.get("kind", "calibration"))
 
 

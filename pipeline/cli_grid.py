@@ -1,0 +1,132 @@
+"""``markcal grid``, ``markcal render grid`` and ``markcal render grid-job``."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from markcal.stages.errors import MarkcalError
+
+
+def cmd_grid(args) -> int:
+    from markcal.pipeline.cli import progress
+    from markcal.pipeline.flows.grid import GridOptions, run_grid
+    from markcal.reports.grid_outputs import write_grid_outputs
+
+    say = progress(args.quiet)
+    opt = GridOptions(model=args.model, units_per_mm=args.units_per_mm, centre_units=args.centre_units,
+                      lens_mm=args.lens_mm, d_mm=args.d_mm, e_mm=args.e_mm, grid_step_mm=args.grid_step_mm,
+                      folds=args.folds, seed=args.seed)
+    res = run_grid(args.measured, opt, progress=say)
+    say("writing tables and report")
+    paths = write_grid_outputs(res, args.out, report=not args.no_report)
+    s = res.summary
+    cv = ", ".join(f"{k} {v:.4f}" for k, v in res.choice.cv_rmse_mm.items())
+    say(f"{s['n_marks']} marks{' (mirrored)' if s['mirrored'] else ''}, deviation RMS {s['rms_mm']:.4f} mm; "
+        f"{s['folds']}-fold CV error (mm): {cv}; using {s['model']}; {s['n_extrapolated']} of {s['n_nodes']} "
+        "nodes extrapolated")
+    print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    return 0
+
+
+def _write_measured(path, r, layout: str, units_per_mm: float | None) -> None:
+    """Write a rendered grid in one of the input layouts."""
+    from markcal.reports.files import atomic_write_text, write_csv
+    if layout == "csv":
+        write_csv(path, {"id": r.row * r.options.cols + r.col, "row": r.row, "col": r.col,
+                         "x_cmd_mm": r.cmd_mm[:, 0], "y_cmd_mm": r.cmd_mm[:, 1],
+                         "x_meas_mm": r.meas_mm[:, 0], "y_meas_mm": r.meas_mm[:, 1]})
+        return
+    units = np.rint(r.cmd_mm * units_per_mm + 0x8000).astype(int)
+    if np.any(units < 0) or np.any(units > 0xFFFF):
+        raise MarkcalError("the grid does not fit in 16-bit controller units at this --units-per-mm")
+    if layout == "units":
+        write_csv(path, {"x_cmd_units": [f"0x{u:04X}" for u in units[:, 0]], "y_cmd_units": units[:, 1],
+                         "x_meas_mm": r.meas_mm[:, 0], "y_meas_mm": r.meas_mm[:, 1]})
+        return
+    i = r.col - (r.options.cols - 1) // 2
+    j = r.row - (r.options.rows - 1) // 2
+    lines = [f"{m[0]:8.3f} {m[1]:8.3f} {a:7d} {b:7d}    {u[0]:04X}    {u[1]:04X}"
+             for m, a, b, u in zip(r.meas_mm, i, j, units)]
+    atomic_write_text(path, "\n".join(lines) + "\n")
+
+
+def cmd_render_grid(args) -> int:
+    from markcal.fixtures.measured_grid import GridRenderOptions, render_grid
+    from markcal.pipeline.cli import progress
+    from markcal.reports.files import write_json
+
+    say = progress(args.quiet)
+    opt = GridRenderOptions(rows=args.rows, cols=args.cols, lens_mm=args.lens_mm, fill=args.fill,
+                            noise_mm=args.noise_mm, mirror=args.mirror, n_missing=args.missing)
+    if not (3 <= opt.rows <= 101 and 3 <= opt.cols <= 101 and opt.lens_mm > 0 and 0 < opt.fill <= 1
+            and opt.noise_mm >= 0 and 0 <= opt.n_missing < opt.rows * opt.cols):
+        raise MarkcalError("render grid: rows/cols 3..101, --lens-mm > 0, 0 < --fill <= 1, --noise-mm >= 0, "
+                           "--missing below the number of marks")
+    say(f"rendering a hand-measured {opt.rows} x {opt.cols} grid, seed {args.seed}")
+    r = render_grid(args.seed, opt)
+    upm = 65536.0 / opt.lens_mm
+    name = {"csv": "measured.csv", "units": "measured_units.csv", "bjjcz": "measured.txt"}[args.format]
+    os.makedirs(args.out, exist_ok=True)
+    _write_measured(os.path.join(args.out, name), r, args.format, upm)
+    truth = dict(r.truth, d0_mm=r.d0_mm, e0_mm=r.e0_mm, units_per_mm=upm, layout=args.format)
+    write_json(os.path.join(args.out, "truth.json"), truth)
+    print(os.path.abspath(os.path.join(args.out, name)))
+    return 0
+
+
+def cmd_render_grid_job(args) -> int:
+    from markcal.reports.grid_job import write_grid_job
+    paths = write_grid_job(args.out, args.rows, args.cols, args.field_mm, args.mark, args.format, args.mark_size_mm)
+    print(os.path.abspath(paths["job"]))
+    print(os.path.abspath(paths["measure.csv"]))
+    return 0
+
+
+def register(sub, render_sub) -> None:
+    """Add ``grid`` to the top-level commands and ``grid``, ``grid-job`` to ``render``."""
+    from markcal.stages.galvo_fit import KINDS
+    g = sub.add_parser("grid", help="hand-measured galvo grid -> physical model, correction over the lens field, report")
+    g.add_argument("measured", help="measured grid: CSV (x_cmd_mm,y_cmd_mm,x_meas_mm,y_meas_mm or x_cmd_units,...) "
+                                    "or a BJJCZ whitespace file")
+    g.add_argument("--out", required=True, help="output folder")
+    g.add_argument("--model", choices=[*KINDS, "auto"], default="physical+rbf",
+                   help="correction model (auto: lowest k-fold CV error)")
+    g.add_argument("--units-per-mm", type=float, default=None, help="controller units per mm (commands in units)")
+    g.add_argument("--centre-units", type=float, default=32768.0, help="controller units at the field centre")
+    g.add_argument("--lens-mm", type=float, default=None,
+                   help="lens field (mm) the correction covers (default: 65536 / units-per-mm, else the grid + one pitch)")
+    g.add_argument("--d-mm", type=float, default=None, help="controller's nominal mirror-to-field distance d (mm)")
+    g.add_argument("--e-mm", type=float, default=None, help="controller's nominal mirror spacing e (mm)")
+    g.add_argument("--grid-step-mm", type=float, default=None, help="correction_grid.csv step (default lens / 50)")
+    g.add_argument("--folds", type=int, default=5, help="k of the k-fold cross-validation")
+    g.add_argument("--seed", type=int, default=0, help="seed of the CV folds")
+    g.add_argument("--no-report", action="store_true", help="skip report.html")
+    g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    g.set_defaults(func=cmd_grid)
+
+    rg = render_sub.add_parser("grid", help="synthetic hand-measured galvo grid with truth")
+    rg.add_argument("--seed", type=int, default=0)
+    rg.add_argument("--out", required=True)
+    rg.add_argument("--rows", type=int, default=9)
+    rg.add_argument("--cols", type=int, default=9)
+    rg.add_argument("--lens-mm", type=float, default=110.0, help="lens field (mm)")
+    rg.add_argument("--fill", type=float, default=0.8, help="fraction of the lens field the marks span")
+    rg.add_argument("--noise-mm", type=float, default=0.02, help="measurement noise, 1 sigma per axis (mm)")
+    rg.add_argument("--mirror", action="store_true", help="measured from the back (mirrored)")
+    rg.add_argument("--missing", type=int, default=2, help="marks left unmeasured")
+    rg.add_argument("--format", choices=["csv", "units", "bjjcz"], default="csv",
+                    help="csv (mm), units (CSV in controller units, 65536 per lens field) or bjjcz (whitespace)")
+    rg.add_argument("--quiet", action="store_true")
+    rg.set_defaults(func=cmd_render_grid)
+
+    rj = render_sub.add_parser("grid-job", help="the marking job of a calibration grid and its measuring sheet")
+    rj.add_argument("--out", required=True)
+    rj.add_argument("--rows", type=int, default=9)
+    rj.add_argument("--cols", type=int, default=9)
+    rj.add_argument("--field-mm", type=float, default=110.0, help="span of the outer marks (mm)")
+    rj.add_argument("--mark", choices=["cross", "circle"], default="cross")
+    rj.add_argument("--mark-size-mm", type=float, default=None, help="mark size (default min(2, pitch / 4))")
+    rj.add_argument("--format", choices=["dxf", "json", "gcode"], default="dxf")
+    rj.add_argument("--quiet", action="store_true")
+    rj.set_defaults(func=cmd_render_grid_job)
