@@ -3,23 +3,16 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
-
 from markcal.stages.errors import MarkcalError
 
 
 def cmd_grid(args) -> int:
-    from markcal.pipeline.cli import progress
-    from markcal.pipeline.flows.grid import GridOptions, run_grid
-    from markcal.reports.grid_outputs import write_grid_outputs
+    from markcal.pipeline.progress import progress
+    from markcal.pipeline.registry import get_flow, run_and_write
 
     say = progress(args.quiet)
-    opt = GridOptions(model=args.model, units_per_mm=args.units_per_mm, centre_units=args.centre_units,
-                      lens_mm=args.lens_mm, d_mm=args.d_mm, e_mm=args.e_mm, grid_step_mm=args.grid_step_mm,
-                      folds=args.folds, seed=args.seed)
-    res = run_grid(args.measured, opt, progress=say)
-    say("writing tables and report")
-    paths = write_grid_outputs(res, args.out, report=not args.no_report)
+    options = {k: getattr(args, k) for k in get_flow("grid").descriptor.options if getattr(args, k) is not None}
+    res, paths = run_and_write("grid", args.measured, args.out, options=options, progress=say)
     s = res.summary
     cv = ", ".join(f"{k} {v:.4f}" for k, v in res.choice.cv_rmse_mm.items())
     say(f"{s['n_marks']} marks{' (mirrored)' if s['mirrored'] else ''}, deviation RMS {s['rms_mm']:.4f} mm; "
@@ -29,32 +22,9 @@ def cmd_grid(args) -> int:
     return 0
 
 
-def _write_measured(path, r, layout: str, units_per_mm: float | None) -> None:
-    """Write a rendered grid in one of the input layouts."""
-    from markcal.reports.files import atomic_write_text, write_csv
-    if layout == "csv":
-        write_csv(path, {"id": r.row * r.options.cols + r.col, "row": r.row, "col": r.col,
-                         "x_cmd_mm": r.cmd_mm[:, 0], "y_cmd_mm": r.cmd_mm[:, 1],
-                         "x_meas_mm": r.meas_mm[:, 0], "y_meas_mm": r.meas_mm[:, 1]})
-        return
-    units = np.rint(r.cmd_mm * units_per_mm + 0x8000).astype(int)
-    if np.any(units < 0) or np.any(units > 0xFFFF):
-        raise MarkcalError("the grid does not fit in 16-bit controller units at this --units-per-mm")
-    if layout == "units":
-        write_csv(path, {"x_cmd_units": [f"0x{u:04X}" for u in units[:, 0]], "y_cmd_units": units[:, 1],
-                         "x_meas_mm": r.meas_mm[:, 0], "y_meas_mm": r.meas_mm[:, 1]})
-        return
-    i = r.col - (r.options.cols - 1) // 2
-    j = r.row - (r.options.rows - 1) // 2
-    lines = [f"{m[0]:8.3f} {m[1]:8.3f} {a:7d} {b:7d}    {u[0]:04X}    {u[1]:04X}"
-             for m, a, b, u in zip(r.meas_mm, i, j, units)]
-    atomic_write_text(path, "\n".join(lines) + "\n")
-
-
 def cmd_render_grid(args) -> int:
-    from markcal.fixtures.measured_grid import GridRenderOptions, render_grid
-    from markcal.pipeline.cli import progress
-    from markcal.reports.files import write_json
+    from markcal.fixtures.measured_grid import GridRenderOptions, render_grid, save_measured_grid
+    from markcal.pipeline.progress import progress
 
     say = progress(args.quiet)
     opt = GridRenderOptions(rows=args.rows, cols=args.cols, lens_mm=args.lens_mm, fill=args.fill,
@@ -65,13 +35,7 @@ def cmd_render_grid(args) -> int:
                            "--missing below the number of marks")
     say(f"rendering a hand-measured {opt.rows} x {opt.cols} grid, seed {args.seed}")
     r = render_grid(args.seed, opt)
-    upm = 65536.0 / opt.lens_mm
-    name = {"csv": "measured.csv", "units": "measured_units.csv", "bjjcz": "measured.txt"}[args.format]
-    os.makedirs(args.out, exist_ok=True)
-    _write_measured(os.path.join(args.out, name), r, args.format, upm)
-    truth = dict(r.truth, d0_mm=r.d0_mm, e0_mm=r.e0_mm, units_per_mm=upm, layout=args.format)
-    write_json(os.path.join(args.out, "truth.json"), truth)
-    print(os.path.abspath(os.path.join(args.out, name)))
+    print(os.path.abspath(save_measured_grid(args.out, r, args.format)))
     return 0
 
 
@@ -90,17 +54,17 @@ def register(sub, render_sub) -> None:
     g.add_argument("measured", help="measured grid: CSV (x_cmd_mm,y_cmd_mm,x_meas_mm,y_meas_mm or x_cmd_units,...) "
                                     "or a BJJCZ whitespace file")
     g.add_argument("--out", required=True, help="output folder")
-    g.add_argument("--model", choices=[*KINDS, "auto"], default="physical+rbf",
+    g.add_argument("--model", choices=[*KINDS, "auto"], default=None,
                    help="correction model (auto: lowest k-fold CV error)")
     g.add_argument("--units-per-mm", type=float, default=None, help="controller units per mm (commands in units)")
-    g.add_argument("--centre-units", type=float, default=32768.0, help="controller units at the field centre")
+    g.add_argument("--centre-units", type=float, default=None, help="controller units at the field centre")
     g.add_argument("--lens-mm", type=float, default=None,
                    help="lens field (mm) the correction covers (default: 65536 / units-per-mm, else the grid + one pitch)")
     g.add_argument("--d-mm", type=float, default=None, help="controller's nominal mirror-to-field distance d (mm)")
     g.add_argument("--e-mm", type=float, default=None, help="controller's nominal mirror spacing e (mm)")
     g.add_argument("--grid-step-mm", type=float, default=None, help="correction_grid.csv step (default lens / 50)")
-    g.add_argument("--folds", type=int, default=5, help="k of the k-fold cross-validation")
-    g.add_argument("--seed", type=int, default=0, help="seed of the CV folds")
+    g.add_argument("--folds", type=int, default=None, help="k of the k-fold cross-validation")
+    g.add_argument("--seed", type=int, default=None, help="seed of the CV folds")
     g.add_argument("--no-report", action="store_true", help="skip report.html")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     g.set_defaults(func=cmd_grid)

@@ -104,7 +104,7 @@ def test_no_import_cycles(graph):
 def test_every_flow_registered_once_with_its_writer():
     from markcal.pipeline.registry import all_flows
     flows = all_flows()
-    assert list(flows) == ["selfcal", "servo", "scan", "indents", "path", "pmcal"]
+    assert list(flows) == ["selfcal", "servo", "grid", "scan", "indents", "path", "pmcal"]
     for name, flow in flows.items():
         d = flow.descriptor
         assert d.name == name and flow.write.__name__.startswith("write_")

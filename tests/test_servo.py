@@ -194,7 +194,7 @@ def _write_trace(path, t, ref, pos):
 
 
 @pytest.mark.parametrize("defect,needle", [("gap", "gap in the trace"), ("back", "out of time order"),
-                                           ("dup", "out of time order"), ("nan", "line 9: pos_mm is empty"),
+                                           ("dup", "out of time order"), ("nan", "line 9: pos_mm = '' is not a number"),
                                            ("cols", "missing column(s) pos_mm")])
 def test_bad_traces_refused(tmp_path, capsys, defect, needle):
     t = np.arange(200) * 1e-4

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.stages.deviation import deviation_stats, grid_nodes
 from markcal.stages.errors import MarkcalError
 from markcal.stages.galvo_fit import (KINDS, PARAM_NAMES, ModelChoice, choose_model, fit_physical,
@@ -190,3 +191,45 @@ def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResu
     return GridResult(source=source, options=opt, grid=grid, fiducials=fid, registration=tf, choice=choice,
                       pitch_mm=pitch, lens_mm=lens, d_mm=d0, e_mm=e0, grid_xy_mm=nodes, grid_dxy_mm=dxy,
                       grid_hull_mm=hull, summary=summary)
+
+
+def _claims(path) -> bool:
+    e = file_ext(path)
+    if e == ".csv":
+        h = csv_header(path)
+        return ("x_cmd_mm" in h or "x_cmd_units" in h) and "x_meas_mm" in h
+    if e != ".txt":
+        return False
+    try:
+        with open(path, encoding="utf-8", errors="replace") as fh:
+            first = next((s for s in (line.split() for line in fh) if s and not s[0].startswith("#")), [])
+    except OSError:
+        return False
+    if len(first) != 6:
+        return False
+    try:
+        [float(v) for v in first[:4]] + [int(v, 16) for v in first[4:]]
+    except ValueError:
+        return False
+    return True
+
+
+def grid_options(o: dict) -> GridOptions:
+    """:class:`GridOptions` from the descriptor's option dict (0 means "from the input")."""
+    def given(k):
+        return o[k] if o[k] else None
+    return GridOptions(model=o["model"], units_per_mm=given("units_per_mm"), centre_units=o["centre_units"],
+                       lens_mm=given("lens_mm"), d_mm=given("d_mm"), e_mm=given("e_mm"),
+                       grid_step_mm=given("grid_step_mm"), folds=int(o["folds"]), seed=int(o["seed"]))
+
+
+FLOW = FlowDescriptor(
+    name="grid", help="hand-measured galvo grid -> physical model, correction over the lens field, report",
+    claims=_claims,
+    run=lambda path, spec, options, progress=None: run_grid(path, grid_options(options), progress=progress),
+    options={"model": "physical+rbf", "units_per_mm": 0.0, "centre_units": 32768.0, "lens_mm": 0.0, "d_mm": 0.0,
+             "e_mm": 0.0, "grid_step_mm": 0.0, "folds": 5, "seed": 0, "no_report": False},
+    key_figures=(Figure("n_marks", "marks"), Figure("rms_mm", "grid deviation RMS", "mm"),
+                 Figure("max_mm", "deviation max", "mm"), Figure("model", "model"),
+                 Figure("n_extrapolated", "nodes extrapolated")),
+    trends=("rms_mm",), cost=1.0)
