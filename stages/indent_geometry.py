@@ -13,8 +13,9 @@ import numpy as np
 __all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "robust_plane", "wrap45"]
 
 #: per-imprint fields (``Imprint`` attributes that go into indents.csv)
-IMPRINT_FIELDS = ("x_um", "y_um", "diameter_um", "diag1_um", "diag2_um", "depth_nm", "hd_ratio",
-                  "orientation_deg", "pileup_nm")
+IMPRINT_FIELDS = ("x_um", "y_um", "diameter_um", "diag1_um", "diag2_um", "d_um", "area_um2", "depth_nm",
+                  "apex_depth_nm", "hd_ratio", "orientation_deg", "pileup_nm", "pileup_volume_um3", "edge_bow",
+                  "cut_by_border")
 
 
 def circle_fit(points: np.ndarray) -> tuple:
@@ -67,6 +68,19 @@ class Imprint:
     blend_nm: float = float("nan")          # AFM: tip/ridge blend tau of the facet model (nm)
     psf_um: float = float("nan")            # OM: fitted PSF, Gaussian-equivalent sigma (µm)
     contrast: float = float("nan")          # OM: interior darkness
+    # single-imprint metrology (stages.indent_single); NaN / None where not measured
+    area_um2: float = float("nan")          # projected contact area
+    apex_depth_nm: float = float("nan")     # the facet model's apex depth (depth_nm: measured floor)
+    pileup_volume_um3: float = float("nan")
+    edge_bow: float = float("nan")          # mean mid-edge displacement / (d/2), outward positive
+    cut_by_border: bool = False
+    contour_um: np.ndarray | None = None    # contact boundary (m, 2)
+    floor_um: tuple | None = None           # (x, y) of the floor
+
+    @property
+    def d_um(self) -> float:
+        """Mean diagonal (the ISO 6507 d)."""
+        return 0.5 * (self.diag1_um + self.diag2_um)
 
 
 # ----------------------------------------------------------------------------- helpers
