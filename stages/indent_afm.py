@@ -280,7 +280,14 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         fit_px = fin & (pmax < -max(3.0, 4 * noise_nm, 0.06 * h_apex)) & (rad < 1.6 * r_est)
         if fit_px.sum() < 16:
             return None
-        coef, qk, tau, res = _fit_facets_joint(x[fit_px], y[fit_px], zr[fit_px], coef, tau, noise_nm, qk)
+        use = fit_px
+        if fit_px.sum() > 1500:
+            # a large imprint: an even subsample of its pixels pins the 17 parameters down as well
+            use = fit_px.copy()
+            idx = np.flatnonzero(fit_px)
+            use.ravel()[idx] = False
+            use.ravel()[idx[::int(np.ceil(len(idx) / 1500))]] = True
+        coef, qk, tau, res = _fit_facets_joint(x[use], y[use], zr[use], coef, tau, noise_nm, qk)
         # facets must slope up outwards, one per quadrant around the apex
         corners = []
         for k, k2 in ((3, 0), (0, 1), (1, 2), (2, 3)):
