@@ -314,8 +314,6 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     if cont is None:
         return None
     cont_rc = cont + [r0, c0]
-    touches = bool(np.any(pit[0]) or np.any(pit[-1]) or np.any(pit[:, 0]) or np.any(pit[:, -1]))
-    cut = bool(cut or (touches and (r0 == 0 or c0 == 0 or r1 == ny or c1 == nx)))
     # corners: extreme points of the boundary along the diagonals
     rel = cont_rc - [fr, fc]
     ang = np.arctan2(rel[:, 0], rel[:, 1])
