@@ -53,6 +53,7 @@ def main(argv=None):
     ap.add_argument("--bulge", type=float, default=0.0, help="facet bulge of the AFM renders (model mismatch)")
     ap.add_argument("--om-nominal", type=float, default=None, help="OM: one nominal size (µm) for every seed")
     ap.add_argument("--om-first-seed", type=int, default=1000)
+    ap.add_argument("--single-seeds", type=int, default=10, help="single real-like imprints (issue 20 goals)")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
     print("machine: 2 cores shared with other jobs; timings are noisy", file=sys.stderr)
@@ -70,10 +71,46 @@ def main(argv=None):
               f"(min {min(times):.3f}, max {max(times):.3f}), CPU median {np.median(cpu):.3f} s, {a.runs} runs; "
               "goal <= 1 s", flush=True)
 
+    if a.single_seeds:
+        _single_sweep(a, tmp)
     if a.afm_seeds:
         _afm_sweep(a, tmp)
     if a.om_seeds:
         _om_sweep(a, tmp)
+
+
+def _single_sweep(a, tmp):
+    """Single imprints (fixtures/indent_single, seeds 2000+; odd seeds: a corner 3 px from the border)."""
+    from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
+    print(f"\nsingle imprints, seeds 2000..{1999 + a.single_seeds}, 256 x 256, multi-channel IBW; goals: "
+          "d 0.5 % or 1 px, depth 1 %, area 1 %, corners 1.5 px, <= 0.3 s")
+    print("seed fill margin_px  d_err_%  d_err_px  depth_err_%  area_err_%  corner_max_px  cut  wall_s")
+    rows = []
+    for i in range(a.single_seeds):
+        seed = 2000 + i
+        r = render_single(seed, SingleOptions(corner_margin_px=3.0 if i % 2 else None))
+        t = r.truth["imprints"][0]
+        path = os.path.join(tmp, "single.ibw")
+        with open(path, "wb") as fh:
+            fh.write(single_ibw(r))
+        t0 = time.perf_counter()
+        f = measure_file(path, None, IndentsOptions())
+        wall = time.perf_counter() - t0
+        k = int(np.argmax(f.table["d_um"]))
+        m = f.imprints[k]
+        tc = np.array(t["corners_um"])
+        cmax = max(np.min(np.hypot(*(tc - c).T)) for c in m.corners_um) / r.pixel_um
+        row = (100 * (m.d_um / t["d_um"] - 1), (m.d_um - t["d_um"]) / r.pixel_um,
+               100 * (m.depth_nm / t["depth_nm"] - 1), 100 * (m.area_um2 / t["area_um2"] - 1), cmax, wall)
+        rows.append(row)
+        print(f"{seed} {r.truth['fill']:.2f} {'3' if i % 2 else '-':>6}  {row[0]:+7.2f}  {row[1]:+8.2f}  "
+              f"{row[2]:+10.2f}  {row[3]:+10.2f}  {row[4]:13.2f}  {int(m.cut_by_border):3d}  {wall:6.2f}", flush=True)
+    v = np.array(rows)
+    d_ok = np.mean((np.abs(v[:, 0]) <= 0.5) | (np.abs(v[:, 1]) <= 1.0))
+    print(f"all: |d| max {np.nanmax(np.abs(v[:, 0])):.2f} % ({np.nanmax(np.abs(v[:, 1])):.2f} px), within goal "
+          f"{100 * d_ok:.0f} %; |depth| max {np.nanmax(np.abs(v[:, 2])):.2f} %; |area| max "
+          f"{np.nanmax(np.abs(v[:, 3])):.2f} %; corners max {np.nanmax(v[:, 4]):.2f} px; wall median "
+          f"{np.median(v[:, 5]):.2f} s")
 
 
 def _afm_sweep(a, tmp):

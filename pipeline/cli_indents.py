@@ -13,7 +13,7 @@ def cmd_indents(args) -> int:
 
     say = progress(args.quiet)
     spec = read_array_spec(args.array) if args.array else None
-    opt = IndentsOptions(kind=args.kind, pixel_size_um=args.pixel_size_um)
+    opt = IndentsOptions(kind=args.kind, pixel_size_um=args.pixel_size_um, load_mN=args.load_mN)
     res = run_indents(args.images, spec, opt, progress=say)
     say("writing tables and report")
     paths = write_indent_outputs(res, args.out, report=not args.no_report)
@@ -44,6 +44,8 @@ def cmd_render_afm(args) -> int:
     from markcal.stages.image_io import gsf_bytes
 
     say = progress(args.quiet)
+    if args.single:
+        return _render_single(args, say)
     o = AfmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
                    size_px=args.size_px, field_um=args.field_um, facet_bulge=args.facet_bulge)
     say(f"rendering AFM map, seed {args.seed}")
@@ -59,6 +61,24 @@ def cmd_render_afm(args) -> int:
     if "ibw" in fmts:
         atomic_write_bytes(os.path.join(args.out, "heights.ibw"), asylum_ibw(r))
     return _finish_render(r, args.out)
+
+
+def _render_single(args, say) -> int:
+    """One real-like imprint: heights.ibw (Height, Deflection, ZSensor in m), heights.tif, truth.json."""
+    from markcal.fixtures.indent_maps import tiff_bytes
+    from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
+    from markcal.reports.files import atomic_write_bytes, write_json
+    o = SingleOptions(size_px=args.size_px, fill=args.fill, corner_margin_px=args.corner_margin_px)
+    say(f"rendering a single-imprint AFM map, seed {args.seed}")
+    r = render_single(args.seed, o)
+    os.makedirs(args.out, exist_ok=True)
+    fmts = {f.strip() for f in args.formats.split(",") if f.strip()} | {"ibw"}
+    atomic_write_bytes(os.path.join(args.out, "heights.ibw"), single_ibw(r))
+    if "tif" in fmts:
+        atomic_write_bytes(os.path.join(args.out, "heights.tif"), tiff_bytes(r.data, r.pixel_um, zunit="nm"))
+    write_json(os.path.join(args.out, "truth.json"), r.truth)
+    print(os.path.abspath(args.out))
+    return 0
 
 
 def cmd_render_om(args) -> int:
@@ -90,6 +110,7 @@ def register(sub, render_sub) -> None:
     p.add_argument("--array", help="array spec (ARRAY.toml): rows, cols, pitch_um, nominal_diameter_um")
     p.add_argument("--kind", choices=["afm", "om"], help="override the kind guessed from the file")
     p.add_argument("--pixel-size-um", type=_positive, help="pixel size (µm); overrides the file's")
+    p.add_argument("--load-mN", type=_positive, help="indentation load (mN): Vickers hardness HV = 0.1891 F / d^2")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -111,6 +132,11 @@ def register(sub, render_sub) -> None:
             r.add_argument("--formats", default="tif,gsf", help="comma list of tif, gsf, ibw")
             r.add_argument("--facet-bulge", type=float, default=0.0,
                            help="convex facets (fraction of the depth), 0: planar")
+            r.add_argument("--single", action="store_true",
+                           help="one real-like imprint (bowed edges, pile-up lobes) as multi-channel IBW + truth")
+            r.add_argument("--fill", type=float, default=None, help="--single: mean diagonal / field (0.4-0.9)")
+            r.add_argument("--corner-margin-px", type=float, default=None,
+                           help="--single: put the corner nearest a border this far from it (px)")
         else:
             r.add_argument("--pixel-um", type=_positive, default=0.1)
             r.add_argument("--bits", type=int, choices=[8, 16], default=8)

@@ -185,6 +185,8 @@ def render_indent_report_html(res) -> str:
             ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
     parts.append(table(["quantity", "value"], rows))
+    from .indent_single_report import single_section
+    parts.append(single_section(res.files))
     if s["nominal_inferred"]:
         parts.append('<div class="warn">No array spec: the nominal size of each file is its median diameter '
                      "rounded to 0.5 µm.</div>")

@@ -13,10 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from markcal.stages import indent as ind
-from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.pipeline.config import check_sections, load_toml
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
+from markcal.stages import indent as ind
+from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
+from markcal.stages.indent_single import INDENTERS, hardness_hv, level_single, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
@@ -35,13 +37,14 @@ class ArraySpec:
     pitch_um: float
     nominal_diameter_um: float
     indenter: str = "vickers"
+    load_mN: float | None = None            # [indenter] load_mN: for the Vickers hardness
 
 
 def read_array_spec(path) -> ArraySpec:
     """Read ARRAY.toml strictly: unknown sections or keys and bad values are errors."""
     path = os.fspath(path)
     d = load_toml(path, "array spec")
-    check_sections(d, {"array": {"rows", "cols", "pitch_um", "nominal_diameter_um"}, "indenter": {"kind"}}, path)
+    check_sections(d, {"array": {"rows", "cols", "pitch_um", "nominal_diameter_um"}, "indenter": {"kind", "load_mN"}}, path)
     a = d.get("array")
     if a is None:
         raise MarkcalError("missing section [array]", path)
@@ -49,15 +52,19 @@ def read_array_spec(path) -> ArraySpec:
     if missing:
         raise MarkcalError(f"missing key(s) {', '.join(missing)} in [array]", path)
     kind = d.get("indenter", {}).get("kind", "vickers")
-    if kind != "vickers":
-        raise MarkcalError(f"indenter kind '{kind}' is not supported (only \"vickers\")", path)
+    if kind not in INDENTERS:
+        raise MarkcalError(f"indenter kind '{kind}' is not supported (only {', '.join(map(repr, INDENTERS))})", path)
+    load = d.get("indenter", {}).get("load_mN")
+    if load is not None and (isinstance(load, bool) or not isinstance(load, (int, float)) or not load > 0):
+        raise MarkcalError(f"[indenter] load_mN must be a positive number, got {load!r}", path)
     try:
         if isinstance(a["rows"], bool) or isinstance(a["cols"], bool):
             raise TypeError("rows and cols must be integers")
         if int(a["rows"]) != a["rows"] or int(a["cols"]) != a["cols"]:
             raise ValueError("rows and cols must be integers")
         spec = ArraySpec(rows=int(a["rows"]), cols=int(a["cols"]), pitch_um=float(a["pitch_um"]),
-                         nominal_diameter_um=float(a["nominal_diameter_um"]), indenter=kind)
+                         nominal_diameter_um=float(a["nominal_diameter_um"]), indenter=kind,
+                         load_mN=None if load is None else float(load))
     except (TypeError, ValueError) as exc:
         raise MarkcalError(f"bad value: {exc}", path) from None
     if spec.rows < 1 or spec.cols < 1:
@@ -77,6 +84,7 @@ class IndentsOptions:
     pixel_size_um: float | None = None      # overrides the file's pixel size
     tolerance_um: float = TOLERANCE_UM
     min_hd: float = MIN_HD
+    load_mN: float | None = None            # indentation load: HV = 0.1891 F / d^2 (overrides the spec's)
 
 
 @dataclass(frozen=True)
@@ -176,15 +184,6 @@ def _check_fits(img: Image, spec: ArraySpec):
                            f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
 
 
-def _dedupe(imps):
-    keep = []
-    for m in sorted(imps, key=lambda m: -m.n_pixels):
-        if all(np.hypot(m.x_um - k.x_um, m.y_um - k.y_um) > 0.5 * max(m.diameter_um, k.diameter_um)
-               for k in keep):
-            keep.append(m)
-    return keep
-
-
 def _measure(img: Image, spec, opt, say, t0):
     name = os.path.basename(img.source)
     if spec is not None:
@@ -195,11 +194,14 @@ def _measure(img: Image, spec, opt, say, t0):
     if img.kind == "afm":
         say(f"{name}: levelling {img.shape[0]} x {img.shape[1]} AFM map")
         lv = level_afm(img.data, px)
+        if lv.mask.mean() > 0.3:
+            # an imprint filling much of the field: level from the far field only
+            lv = level_single(img.data, px)
         say(f"{name}: detecting and fitting imprints")
         cands = ind.detect_pits(lv.z_nm, lv.noise_nm, px)
-        imps = [ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars) for r, c, rad in cands]
+        imps = [sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars),
+                              measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad), px) for r, c, rad in cands]
         floor = max(5.0, 8 * lv.noise_nm)
-        imps = [m for m in imps if m is not None and m.depth_nm > floor and m.diameter_um > 3 * px]
         image = lv.z_nm
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
     else:
@@ -210,13 +212,11 @@ def _measure(img: Image, spec, opt, say, t0):
         # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
         # does not describe comes back as None
         imps = ind.measure_om_array(img.data, px, cands, sig, bg)
-        imps = [m for m in imps if m is not None and m.diameter_um > 3 * px]
+        floor = None
         image = img.data / bg
         info.update(noise_rel=sig)
-    if spec is not None:
-        lo, hi = 0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um
-        imps = [m for m in imps if lo <= m.diameter_um <= hi]
-    imps = _dedupe(imps)
+    window = None if spec is None else (0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um)
+    imps = sel.accept_imprints(imps, px, floor, window)
     if not imps:
         raise MarkcalError("no imprint found")
     n = len(imps)
@@ -256,14 +256,18 @@ def _measure(img: Image, spec, opt, say, t0):
     table = {"id": ids, "row": np.where(row >= 0, row, -1), "col": np.where(col >= 0, col, -1),
              "x_um": np.array([m.x_um for m in imps]), "y_um": np.array([m.y_um for m in imps]),
              "dx_um": dx, "dy_um": dy}
-    for f in ("diameter_um", "diag1_um", "diag2_um", "depth_nm", "hd_ratio", "orientation_deg", "pileup_nm"):
+    for f in ind.IMPRINT_FIELDS[2:]:
         table[f] = np.array([getattr(m, f) for m in imps])
+    table["cut_by_border"] = table["cut_by_border"].astype(int)
+    load = opt.load_mN if opt.load_mN is not None else (spec.load_mN if spec is not None else None)
+    table["hv"] = (hardness_hv(load, table["d_um"], INDENTERS[spec.indenter if spec else "vickers"])
+                   if load is not None else np.full(len(imps), np.nan))
     table.update(file=np.array([name] * k, dtype=object), kind=np.array([img.kind] * k, dtype=object),
                  nominal_um=np.full(k, nominal), fit_rms=np.array([m.fit_rms for m in imps]),
                  n_pixels=np.array([m.n_pixels for m in imps]))
-    err = np.abs(table["diameter_um"] - nominal)
-    table["in_tolerance"] = ((err <= opt.tolerance_um)
-                             & ~(np.isfinite(table["hd_ratio"]) & (table["hd_ratio"] < opt.min_hd))).astype(int)
+    table["in_tolerance"] = sel.tolerance_flags(table["diameter_um"], nominal, table["hd_ratio"], opt.tolerance_um,
+                                                opt.min_hd)
+    info["load_mN"] = load
     info["runtime_s"] = time.perf_counter() - t0
     say(f"{name}: {k} imprints, mean diameter {np.mean(table['diameter_um']):.3f} µm")
     return FileResult(source=img.source, kind=img.kind, pixel_um=px, table=table, imprints=imps,
@@ -274,6 +278,11 @@ def _rms(a):
     a = np.asarray(a, float)
     a = a[np.isfinite(a)]
     return float(np.sqrt(np.mean(a ** 2))) if len(a) else None
+
+
+def _nanmean(a):
+    a = np.asarray(a, float)
+    return float(np.nanmean(a)) if np.isfinite(a).any() else None
 
 
 def _summary(files, failed, t, spec, opt, runtime_s):
@@ -303,6 +312,13 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "nominal_inferred": any(f.nominal_inferred for f in files),
         "pixel_um": files[0].pixel_um,
         "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
+        "mean_d_um": float(np.mean(t["d_um"])),
+        "mean_area_um2": _nanmean(t["area_um2"]),
+        "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
+        "mean_pileup_nm": _nanmean(t["pileup_nm"]),
+        "mean_hv": _nanmean(t["hv"]),
+        "load_mN": files[0].info.get("load_mN"),
+        "n_cut_by_border": int(np.sum(t["cut_by_border"])),
         "runtime_s": runtime_s,
     }
     return out

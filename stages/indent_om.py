@@ -1,0 +1,502 @@
+"""OM/SEM image model of a Vickers imprint: illumination, dark-dot detection and the diamond fit.
+
+Each dark dot is fitted with an image model: a square (diamond) footprint of
+diagonal ``d`` and orientation, darker towards the floor, with a bright rim,
+blurred by an Airy PSF, over a linear background. Darkness, rim and PSF are
+shared by the dots of one micrograph (:func:`measure_om_array`: a joint fit,
+block-arrow normal equations); each dot's fit gives the sub-pixel centre and the
+apparent diameter.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy import fft as sfft
+from scipy.optimize import least_squares
+from scipy.special import j1
+
+from .indent_geometry import Imprint, diagonals as _diagonals
+
+__all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array"]
+
+
+def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> np.ndarray:
+    """Smooth illumination of a micrograph, the dots and their rims left out.
+
+    Median over ``window_um`` on a 4x coarser grid (dots and rims cover a
+    small part of it), Gaussian smoothing, then bilinear interpolation back to
+    every pixel (pixel centres aligned).
+    """
+    f = 4
+    ny, nx = img.shape
+    py, px_ = (-ny) % f, (-nx) % f
+    padded = np.pad(img.astype(np.float64), ((0, py), (0, px_)), mode="edge")
+    small = padded.reshape(padded.shape[0] // f, f, padded.shape[1] // f, f).mean(axis=(1, 3))
+    size = max(5, int(round(window_um / (pixel_um * f))) | 1)
+    bg = ndimage.median_filter(small, size=size, mode="nearest")
+    bg = ndimage.gaussian_filter(bg, size / 4, mode="nearest")
+    rr = (np.arange(ny) - (f - 1) / 2) / f
+    cc = (np.arange(nx) - (f - 1) / 2) / f
+    r2, c2 = np.meshgrid(rr, cc, indexing="ij")
+    out = ndimage.map_coordinates(bg, [r2, c2], order=1, mode="nearest")
+    return np.maximum(out, 1e-6 * max(float(img.max()), 1.0))
+
+
+def detect_dots(img: np.ndarray, pixel_um: float, min_diameter_um: float = 0.4,
+                background: np.ndarray | None = None) -> tuple:
+    """Dark compact dots in a micrograph.
+
+    ``background`` is :func:`om_background` of ``img`` when the caller has it already.
+
+    Returns
+    -------
+    list of (row, col, radius_px), float
+        Candidates (centroid of the dark area, px) and the relative noise level.
+    """
+    rel = img / (om_background(img, pixel_um) if background is None else background) - 1.0
+    d = np.diff(rel, axis=1)
+    sigma = float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2))
+    rs = ndimage.gaussian_filter(rel, 1.0)
+    thr = max(4 * sigma * 0.5, 0.06)
+    low = rs < -thr
+    lab, n = ndimage.label(low)
+    out = []
+    if n == 0:
+        return out, sigma
+    idx = np.arange(1, n + 1)
+    area = ndimage.sum(low, lab, idx)
+    com = ndimage.center_of_mass(-np.minimum(rs, 0), lab, idx)
+    objs = ndimage.find_objects(lab)
+    min_area = max(4.0, 0.3 * (min_diameter_um / pixel_um) ** 2 / 2)
+    for k in range(n):
+        sl = objs[k]
+        h, w = sl[0].stop - sl[0].start, sl[1].stop - sl[1].start
+        if area[k] < min_area or max(h, w) > 3 * min(h, w):
+            continue
+        out.append((float(com[k][0]), float(com[k][1]), float(np.sqrt(2 * area[k]) / 2)))
+    return out, sigma
+
+
+_AIRY_CACHE: dict = {}
+
+
+def _airy(psf_um, sub_um):
+    """Airy (diffraction-limited, in focus) intensity PSF whose Gaussian-equivalent sigma is ``psf_um``.
+
+    sigma ~ 0.21 lambda / NA, so v = 2 pi NA r / lambda = 2 pi 0.21 r / sigma; sampled at
+    ``sub_um`` out to 1.8 lambda / NA. Cached (read-only arrays).
+    """
+    key = (float(psf_um), float(sub_um))
+    k = _AIRY_CACHE.get(key)
+    if k is None:
+        if len(_AIRY_CACHE) > 64:
+            _AIRY_CACHE.clear()
+        k = _AIRY_CACHE[key] = _airy_kernel(psf_um, sub_um)
+        k.flags.writeable = False
+    return k
+
+
+def _airy_kernel(psf_um, sub_um):
+    lam_na = psf_um / 0.21
+    h = max(2, int(np.ceil(1.8 * lam_na / sub_um)))
+    yy, xx = np.mgrid[-h:h + 1, -h:h + 1] * sub_um
+    v = np.maximum(2 * np.pi * np.hypot(xx, yy) / lam_na, 1e-9)
+    k = (2 * j1(v) / v) ** 2
+    return k / k.sum()
+
+
+#: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
+#: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
+#: material): interior darkness at the edge and its increase to the floor, rim height and width
+#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm).
+_OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
+_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf")
+_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04])
+_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6])
+_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5])
+_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
+
+
+class _OmPatch:
+    """One dot's patch (grey values / illumination) and its image model.
+
+    The model is evaluated on a 2x finer grid: relative reflectance (background 1) of a
+    diamond of diagonal ``d``, darker to the floor, with a bright rim ``rim t^2 exp(2 (1 - t))``,
+    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge; blurred by an Airy PSF
+    and averaged over each pixel (one FFT convolution with the PSF folded with the 2 x 2 pixel
+    box, its transform cached per PSF), times a linear background.
+    """
+
+    def __init__(self, img, background, pixel_um, row, col, radius_px):
+        ny, nx = img.shape
+        self.r_est = max(radius_px, 2.0)
+        # a large dot (diagonal >= 16 px) needs no sub-pixel grid: its edge is anti-aliased
+        self.ss = 1 if self.r_est >= 8 else 2
+        half = int(np.ceil(self.r_est * 1.5 + 0.6 / pixel_um + 2))
+        r0, r1 = max(0, int(round(row)) - half), min(ny, int(round(row)) + half + 1)
+        c0, c1 = max(0, int(round(col)) - half), min(nx, int(round(col)) + half + 1)
+        patch = img[r0:r1, c0:c1].astype(np.float64)
+        self.ok = patch.shape[0] >= 7 and patch.shape[1] >= 7
+        if background is not None:
+            patch = patch / background[r0:r1, c0:c1]
+        else:
+            patch = patch / np.median(np.concatenate([patch[0], patch[-1], patch[:, 0], patch[:, -1]]))
+        self.patch = patch
+        self.row, self.col, self.pixel_um = row, col, pixel_um
+        yy, xx = np.mgrid[r0:r1, c0:c1] * pixel_um
+        self.xc0, self.yc0 = float(xx.mean()), float(yy.mean())
+        self.dx, self.dy = xx - self.xc0, yy - self.yc0
+        ss = self.ss
+        self.sub = pixel_um / ss
+        fr = (np.arange((r1 - r0) * ss) - (ss - 1) / 2) / ss + r0
+        fc = (np.arange((c1 - c0) * ss) - (ss - 1) / 2) / ss + c0
+        self.yf, self.xf = np.meshgrid(fr * pixel_um, fc * pixel_um, indexing="ij")
+        self._kern = {}
+
+    def _kernel_fft(self, psf):
+        got = self._kern.get(psf)
+        if got is None:
+            k = _airy(psf, self.sub)
+            h = k.shape[0] // 2
+            # fold in the ss x ss pixel box: pixel mean = full[h + ss - 1 + ss i]
+            ss = self.ss
+            k2 = np.zeros((k.shape[0] + ss - 1, k.shape[1] + ss - 1))
+            for a in range(ss):
+                for b in range(ss):
+                    k2[a:a + k.shape[0], b:b + k.shape[1]] += k / ss ** 2
+            shape = tuple(sfft.next_fast_len(n + 2 * h + ss - 1, real=True) for n in self.xf.shape)
+            got = (sfft.rfft2(k2, shape), h, shape)
+            if len(self._kern) > 8:
+                self._kern.clear()
+            self._kern[psf] = got
+        return got
+
+    def dev(self, g, s):
+        """Reflectance - 1 on the fine grid."""
+        cx, cy, d, th = g[:4]
+        dark0, dark1, rim, rim_w = s[:4]
+        ct, st = np.cos(th), np.sin(th)
+        ex, ey = self.xf - cx, self.yf - cy
+        half = max(d / 2, 1e-3)
+        rho = (np.abs(ex * ct + ey * st) + np.abs(ey * ct - ex * st)) / half
+        inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
+        t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
+        return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+
+    def blur(self, dev, psf):
+        """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
+        kf, h, shape = self._kernel_fft(float(psf))
+        full = sfft.irfft2(sfft.rfft2(dev, shape) * kf, shape)
+        ny, nx = self.patch.shape
+        ss, o = self.ss, h + self.ss - 1
+        return full[..., o:o + ss * ny:ss, o:o + ss * nx:ss]
+
+    def lin(self, g):
+        return g[4] + g[5] * self.dx + g[6] * self.dy
+
+    def model(self, g, s):
+        """Model grey values / illumination for own parameters ``g`` and shared ``s``."""
+        return (1.0 + self.blur(self.dev(g, s), s[4])) * self.lin(g)
+
+    def jac(self, g, s, shared=True):
+        """Model and forward-difference Jacobian (pixels x (7 own [+ 5 shared]) columns)."""
+        devs = [self.dev(g, s)]
+        for j in range(4):
+            gj = g.copy()
+            gj[j] += _OM_OWN_STEP[j]
+            devs.append(self.dev(gj, s))
+        if shared:
+            for j in range(4):
+                sj = s.copy()
+                sj[j] += _OM_SHARED_STEP[j]
+                devs.append(self.dev(g, sj))
+        pix = self.blur(np.stack(devs), s[4])
+        lin = self.lin(g)
+        base = 1.0 + pix[0]
+        m = base * lin
+        cols = [(pix[1 + j] - pix[0]) * lin / _OM_OWN_STEP[j] for j in range(4)]
+        cols += [base, base * self.dx, base * self.dy]
+        if shared:
+            cols += [(pix[5 + j] - pix[0]) * lin / _OM_SHARED_STEP[j] for j in range(4)]
+            cols.append((self.blur(devs[0], s[4] + _OM_SHARED_STEP[4]) - pix[0]) * lin / _OM_SHARED_STEP[4])
+        return m.ravel(), np.stack([c.ravel() for c in cols], axis=1)
+
+    def own_bounds(self, d0):
+        x, y = self.col * self.pixel_um, self.row * self.pixel_um
+        lo = np.array([x - 2 * d0, y - 2 * d0, 0.2 * d0, -np.inf, 0.5, -np.inf, -np.inf])
+        hi = np.array([x + 2 * d0, y + 2 * d0, 3 * d0, np.inf, 2.0, np.inf, np.inf])
+        return lo, hi
+
+    def start(self, s):
+        """Starting own parameters: candidate centre and size, best of four orientations."""
+        d0 = 2 * self.r_est * self.pixel_um
+        gs = [np.array([self.col * self.pixel_um, self.row * self.pixel_um, d0, th, 1.0, 0.0, 0.0])
+              for th in np.radians([0.0, 22.5, 45.0, 67.5])]
+        pix = self.blur(np.stack([self.dev(g, s) for g in gs]), s[4])
+        cost = [np.sum(((1 + p) - self.patch) ** 2) for p in pix]
+        return gs[int(np.argmin(cost))], d0
+
+
+def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
+    """Fit the shared parameters and every patch's own parameters jointly (robust loss).
+
+    The Jacobian is built block by block: a patch depends only on its own seven parameters
+    and the five shared ones.
+    """
+    k = len(patches)
+    sizes = [p.patch.size for p in patches]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+    target = np.concatenate([p.patch.ravel() for p in patches])
+    lo = [_OM_SHARED_LO]
+    hi = [_OM_SHARED_HI]
+    for p, d in zip(patches, d0):
+        a, b = p.own_bounds(d)
+        lo.append(a)
+        hi.append(b)
+    lo, hi = np.concatenate(lo), np.concatenate(hi)
+    x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
+
+    def split(x):
+        return x[:5], x[5:].reshape(k, 7)
+
+    def fun(x):
+        s, g = split(x)
+        return np.concatenate([p.model(g[i], s).ravel() for i, p in enumerate(patches)]) - target
+
+    def jac(x):
+        s, g = split(x)
+        jm = np.zeros((offs[-1], x.size))
+        for i, p in enumerate(patches):
+            _m, jp = p.jac(g[i], s)
+            rows = slice(offs[i], offs[i + 1])
+            jm[rows, 5 + 7 * i:12 + 7 * i] = jp[:, :7]
+            jm[rows, :5] = jp[:, 7:]
+        return jm
+
+    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=scale, max_nfev=max_nfev)
+    s, g = split(r.x)
+    res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
+    return s, g, res
+
+
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
+    """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
+
+    The normal equations have a block-arrow structure (each patch couples its seven own
+    parameters only with the five shared ones), solved through the Schur complement of the
+    shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
+    iteratively reweighted least squares; bounds by clipping.
+
+    Returns
+    -------
+    s : ndarray (5,), g : ndarray (k, 7), res : list of residual arrays
+    """
+    f = max(3 * noise_rel, 0.005)
+    bounds = [p.own_bounds(d) for p, d in zip(patches, d0)]
+    lo_g = np.array([b[0] for b in bounds]) + 1e-9
+    hi_g = np.array([b[1] for b in bounds]) - 1e-9
+    g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
+    s = np.clip(np.array(s, dtype=float), _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+    targets = [p.patch.ravel() for p in patches]
+
+    def cost_of(res):
+        return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
+
+    lam = 1e-3
+    res = None
+    for _it in range(n_iter):
+        U, W, ga = [], [], []
+        V = np.zeros((5, 5))
+        gb = np.zeros(5)
+        res = []
+        for i, p in enumerate(patches):
+            m, jm = p.jac(g[i], s)
+            r = m - targets[i]
+            res.append(r)
+            w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
+            a, b = jm[:, :7], jm[:, 7:]
+            aw, bw = a * w[:, None], b * w[:, None]
+            U.append(a.T @ aw)
+            W.append(aw.T @ b)
+            ga.append(aw.T @ r)
+            V += b.T @ bw
+            gb += bw.T @ r
+        cost = cost_of(res)
+        improved = False
+        for _try in range(5):
+            uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
+            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(5)
+            rhs = gb.copy()
+            for ui, wi, gi in zip(uinv, W, ga):
+                S -= wi.T @ ui @ wi
+                rhs -= wi.T @ ui @ gi
+            ds = -np.linalg.solve(S, rhs)
+            dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
+            s_new = np.clip(s + ds, _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+            g_new = np.clip(g + dg, lo_g, hi_g)
+            res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
+            c_new = cost_of(res_new)
+            if c_new < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        rel = (cost - c_new) / max(cost, 1e-30)
+        s, g, res = s_new, g_new, res_new
+        lam = max(lam / 3.0, 1e-7)
+        if rel < 1e-6:
+            break
+    if res is None:
+        res = [p.model(g[i], s).ravel() - targets[i] for i, p in enumerate(patches)]
+    return s, g, res
+
+
+def _om_own_fit(p, g0, d0, s, noise_rel, max_nfev=40):
+    """Fit one patch's own parameters with the shared ones fixed."""
+    lo, hi = p.own_bounds(d0)
+    target = p.patch.ravel()
+    x0 = np.clip(g0, lo + 1e-9, hi - 1e-9)
+
+    def fun(g):
+        return p.model(g, s).ravel() - target
+
+    def jac(g):
+        return p.jac(g, s, shared=False)[1]
+
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001]), max_nfev=max_nfev)
+    return r.x, r.fun
+
+
+def _om_imprint(g, s, res, n_pixels):
+    cx, cy, d, th = g[:4]
+    ct, st = np.cos(th), np.sin(th)
+    corners = np.array([[d / 2 * ct, d / 2 * st], [-d / 2 * st, d / 2 * ct],
+                        [-d / 2 * ct, -d / 2 * st], [d / 2 * st, -d / 2 * ct]]) + [cx, cy]
+    d1, d2, orient = _diagonals(corners)
+    nan = float("nan")
+    return Imprint(x_um=float(cx), y_um=float(cy), diameter_um=float(d), diag1_um=float(d1), diag2_um=float(d2),
+                   depth_nm=nan, hd_ratio=nan, orientation_deg=float(orient), pileup_nm=nan, corners_um=corners,
+                   fit_rms=float(np.sqrt(np.mean(res ** 2))), n_pixels=int(n_pixels), psf_um=float(s[4]),
+                   contrast=float(s[0]))
+
+
+_OM_S0 = np.array([0.4, 0.1, 0.15, 0.2, 0.15])
+
+
+def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_px: float,
+               noise_rel: float, background: np.ndarray | None = None) -> Imprint | None:
+    """Measure one dark dot on its own: sub-pixel centre and apparent diameter by an image-model fit.
+
+    All twelve model parameters (own and shared, see :func:`measure_om_array`) are fitted to
+    this dot alone; with several dots in one micrograph :func:`measure_om_array` is more
+    accurate (the darkness, rim and PSF correlate with the diameter of a small dot).
+
+    Parameters
+    ----------
+    img : ndarray (rows, cols)
+        Grey values.
+    row, col, radius_px : float
+        Candidate from :func:`detect_dots` (px).
+    noise_rel : float
+        Relative noise of the grey values.
+    background : ndarray, optional
+        Illumination (:func:`om_background`); a linear term per patch refines it.
+
+    Returns
+    -------
+    Imprint or None
+        None for a blob that is not an imprint (no sharp edge, no dark core).
+    """
+    p = _OmPatch(img, background, pixel_um, row, col, radius_px)
+    if not p.ok:
+        return None
+    s0 = _OM_S0.copy()
+    s0[0] = float(np.clip(1 - p.patch.min(), 0.1, 0.9))
+    g0, d0 = p.start(s0)
+    s, g, res = _om_joint_fit([p], g0[None], [d0], s0, noise_rel, max_nfev=60)
+    g = g[0]
+    if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45 or g[2] < 0.25:
+        return None
+    return _om_imprint(g, s, res[0], p.patch.size)
+
+
+def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_rel: float,
+                     background: np.ndarray | None = None, n_joint: int = 8,
+                     refine_all: bool = True) -> list:
+    """Measure every dark dot of one micrograph with shared darkness, rim and PSF.
+
+    One objective blurs every imprint alike and one material darkens them alike, so the
+    interior darkness, its increase to the floor, the rim height and width and the PSF are
+    fitted once, jointly on up to ``n_joint`` typical dots (size nearest the median); every
+    dot is then fitted with those fixed (centre, diagonal, orientation, linear background):
+    this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
+    shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
+    out-of-focus dust) are returned as None. With fewer than three candidates every dot is
+    fitted on its own (:func:`measure_om`).
+
+    Parameters
+    ----------
+    candidates : list of (row, col, radius_px)
+        From :func:`detect_dots`.
+
+    Returns
+    -------
+    list of Imprint or None
+        One entry per candidate (same order); ``psf_um`` and ``contrast`` are the shared values.
+    """
+    if len(candidates) < 3:
+        return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
+    radii = np.array([rad for _r, _c, rad in candidates], dtype=float)
+    big = radii > 4 * np.median(radii)            # a stain or a shading, not a mark of this array
+    patches = [None if b else _OmPatch(img, background, pixel_um, r, c, rad)
+               for (r, c, rad), b in zip(candidates, big)]
+    ok = [i for i, p in enumerate(patches) if p is not None and p.ok]
+    out = [None] * len(candidates)
+    if not ok:
+        return out
+    s = _OM_S0.copy()
+    s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
+    starts = {i: patches[i].start(s) for i in ok}
+    rad = np.array([patches[i].r_est for i in ok])
+    # typical dots: radius nearest the median, then the darkest
+    order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
+    # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
+    n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
+    excluded = set()
+    for _round in range(3):
+        joint = [i for i in order if i not in excluded][:n_joint]
+        s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                [starts[i][1] for i in joint], s, noise_rel)
+        for i, gi in zip(joint, g):
+            starts[i] = (gi, starts[i][1])
+        fits = {}
+        for i in ok:
+            gi, res = _om_own_fit(patches[i], starts[i][0], starts[i][1], s, noise_rel)
+            p = patches[i]
+            core = np.hypot(p.dx + p.xc0 - gi[0], p.dy + p.yc0 - gi[1]).ravel() < gi[2] / 2 + 0.3
+            fits[i] = (gi, float(np.sqrt(np.mean(res ** 2))), res, float(np.sqrt(np.mean(res[core] ** 2))))
+        core = np.array([fits[i][3] for i in ok])
+        limit = 3.0 * max(float(np.median(core)), noise_rel)
+        bad = {i for i in ok if fits[i][3] > limit}
+        if not (bad & set(joint)):
+            break
+        excluded |= bad
+    # final: the shared parameters from every dot the shared model describes, all jointly
+    good = [i for i in ok if fits[i][3] <= limit]
+    if refine_all and len(good) > len(joint):
+        s, g, res = _om_block_fit([patches[i] for i in good], [fits[i][0] for i in good],
+                                  [starts[i][1] for i in good], s, noise_rel)
+        for i, gi, r in zip(good, g, res):
+            fits[i] = (gi, 0.0, r, 0.0)
+    if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
+        return out
+    for i in good:
+        gi, _r, res, _c = fits[i]
+        if gi[2] < 0.25:
+            continue
+        out[i] = _om_imprint(gi, s, res, patches[i].patch.size)
+    return out

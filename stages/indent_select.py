@@ -1,0 +1,81 @@
+"""The measurement decisions of the indents flow, as stages: which imprints count, and tolerance flags.
+
+- :func:`merge_afm`: one AFM imprint from the facet model and the single-imprint metrology;
+- :func:`accept_imprints`: depth floor, size window, duplicates;
+- :func:`tolerance_flags`: diameter within tolerance of the nominal and H/D above its minimum.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .indent_geometry import Imprint
+
+__all__ = ["LARGE_IMPRINT_PX", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags"]
+
+#: from this mean diagonal (px) on, corners come from the contact boundary (extreme points on
+#: bowed edges); below it the facet model's corners are the better estimate
+LARGE_IMPRINT_PX = 40.0
+
+
+def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
+    """One AFM imprint record from the facet-model fit and the single-imprint metrology.
+
+    Large imprints (mean diagonal >= ``LARGE_IMPRINT_PX``) or ones the facet model cannot
+    fit take centre, corners, diagonals and depth (the measured floor) from ``single``; small
+    ones keep the facet model's. Area, pile-up volume, edge bow and the border flag always
+    come from ``single``; ``apex_depth_nm`` is the facet model's depth.
+
+    Parameters
+    ----------
+    facet : Imprint or None
+        From ``indent_afm.measure_afm``.
+    single : SingleImprint or None
+        From ``indent_single.measure_single``.
+    """
+    if single is None:
+        return facet
+    nan = float("nan")
+    extra = dict(area_um2=single.area_um2, pileup_volume_um3=single.pileup_volume_um3,
+                 edge_bow=float(np.nanmean(single.edge_bow)) if np.isfinite(single.edge_bow).any() else nan,
+                 cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
+                 apex_depth_nm=facet.depth_nm if facet is not None else nan)
+    if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
+        return dataclasses.replace(facet, **extra)
+    hd = single.depth_nm / (1000 * single.diameter_um)
+    return Imprint(x_um=single.x_um, y_um=single.y_um, diameter_um=single.diameter_um, diag1_um=single.diag1_um,
+                   diag2_um=single.diag2_um, depth_nm=single.depth_nm, hd_ratio=float(hd),
+                   orientation_deg=single.orientation_deg, pileup_nm=single.pileup_nm,
+                   corners_um=single.corners_um, fit_rms=facet.fit_rms if facet is not None else nan,
+                   n_pixels=single.n_pixels, blend_nm=facet.blend_nm if facet is not None else nan, **extra)
+
+
+def dedupe(imps: list) -> list:
+    """Keep one of imprints closer than half a diameter (the one with more pixels)."""
+    keep = []
+    for m in sorted(imps, key=lambda m: -m.n_pixels):
+        if all(np.hypot(m.x_um - k.x_um, m.y_um - k.y_um) > 0.5 * max(m.diameter_um, k.diameter_um)
+               for k in keep):
+            keep.append(m)
+    return keep
+
+
+def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,
+                    size_window_um: tuple | None = None) -> list:
+    """Imprints that count: measured, deeper than ``min_depth_nm`` (AFM), wider than 3 px,
+    inside ``size_window_um`` (lo, hi) of the diameter when given, duplicates removed."""
+    out = [m for m in imps if m is not None and m.diameter_um > 3 * pixel_um]
+    if min_depth_nm is not None:
+        out = [m for m in out if m.depth_nm > min_depth_nm]
+    if size_window_um is not None:
+        lo, hi = size_window_um
+        out = [m for m in out if lo <= m.diameter_um <= hi]
+    return dedupe(out)
+
+
+def tolerance_flags(diameter_um, nominal_um, hd, tolerance_um: float, min_hd: float) -> np.ndarray:
+    """1 where |diameter - nominal| <= tolerance and H/D (when measured) >= ``min_hd``, else 0."""
+    err = np.abs(np.asarray(diameter_um, float) - nominal_um)
+    hd = np.asarray(hd, float)
+    return ((err <= tolerance_um) & ~(np.isfinite(hd) & (hd < min_hd))).astype(int)

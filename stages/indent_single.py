@@ -1,0 +1,377 @@
+"""Single-imprint metrology on an AFM height map: the hardness lab's numbers (ISO 6507 style).
+
+One imprint may fill most of the field, its edges bow (sink-in, pile-up) and pile-up lobes
+stand beside two opposite edges, so nothing here assumes planar facets:
+
+- :func:`level_single`: far-field levelling when the imprint leaves little background
+  (robust plane from the border ring, then plane + quadratic bow and line offsets from the
+  far-field pixels only);
+- :func:`measure_single`: the contact boundary (the original-surface level, found a few
+  noise levels below it and moved out along the gradient), the corners as the boundary's
+  extreme points along the diagonals refined on the diagonal profiles, diagonals, contact
+  area, depth from a robust far-field plane to the measured floor (quadratic fit about the
+  lowest point), pile-up height and volume, edge bow, and whether the border cuts it;
+- :func:`hardness_hv`: Vickers hardness from the load and the mean diagonal.
+
+Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from .indent_geometry import circle_fit, diagonals, robust_plane
+from .level import Levelled, _remove_scars, noise_nm, poly_surface
+
+__all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "level_single", "measure_single",
+           "SINGLE_FIELDS"]
+
+
+@dataclass(frozen=True)
+class Indenter:
+    """Indenter geometry: number of corners and the hardness constant (HV = k F / d^2, F N, d mm)."""
+
+    name: str
+    n_corners: int
+    hv_factor: float
+
+
+#: known indenters (Berkovich and Knoop: later)
+INDENTERS = {"vickers": Indenter("vickers", 4, 0.1891)}
+VICKERS = INDENTERS["vickers"]
+
+#: per-imprint single-metrology fields that go into indents.csv
+SINGLE_FIELDS = ("d_um", "area_um2", "apex_depth_nm", "pileup_volume_um3", "edge_bow", "cut_by_border")
+
+
+def hardness_hv(load_mN: float, d_um, indenter: Indenter = VICKERS):
+    """Vickers hardness HV = 0.1891 F / d^2 with F in N and the mean diagonal d in mm."""
+    d_mm = np.asarray(d_um, float) * 1e-3
+    return indenter.hv_factor * (load_mN * 1e-3) / (d_mm * d_mm)
+
+
+@dataclass(frozen=True)
+class SingleImprint:
+    """One imprint measured as a hardness lab does (lengths µm, heights nm, image frame).
+
+    ``corners_um`` (4, 2) around the imprint; ``contour_um`` the contact boundary (closed
+    polyline); ``edge_bow`` (4,) mid-edge displacement / (d/2), outward positive, edge k
+    from corner k to k + 1; ``floor_um`` where the floor is.
+    """
+
+    x_um: float
+    y_um: float
+    corners_um: np.ndarray
+    diag1_um: float
+    diag2_um: float
+    d_um: float
+    diameter_um: float
+    orientation_deg: float
+    area_um2: float
+    depth_nm: float
+    floor_um: tuple
+    pileup_nm: float
+    pileup_volume_um3: float
+    edge_bow: np.ndarray
+    cut_by_border: bool
+    contour_um: np.ndarray = field(repr=False)
+    n_pixels: int = 0
+
+
+# ----------------------------------------------------------------------------- levelling
+
+def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled:
+    """Level a map whose imprint may fill most of the field, from the far field only.
+
+    The first plane comes from the border ring (robust: the corners of the imprint and
+    pile-up are rejected); then, iterated, the features (more than 5 noise levels off
+    after smoothing, grown by 3 px) are masked, a plane + quadratic bow is fitted to the
+    rest and each row's offset is the median of its far-field pixels (interpolated over
+    rows that have fewer than 3).
+
+    Parameters
+    ----------
+    z_nm : ndarray (rows, cols)
+        Raw heights (nm), rows along the slow scan axis.
+    pixel_um : float
+        Pixel size (µm), for the tilt angle.
+    """
+    valid = np.isfinite(z_nm)
+    z = np.where(valid, z_nm - np.nanmedian(z_nm), 0.0).astype(np.float64)
+    ny, nx = z.shape
+    rr, cc = np.mgrid[0:ny, 0:nx]
+    ring = valid & ((rr < 3) | (rr >= ny - 3) | (cc < 3) | (cc >= nx - 3))
+    coef = robust_plane(cc[ring].astype(float), rr[ring].astype(float), z[ring], n_iter=8)
+    plane = coef[0] * cc + coef[1] * rr + coef[2]
+    tilt_deg = float(np.degrees(np.arctan(np.hypot(coef[0], coef[1]) / (1000.0 * pixel_um))))
+    z -= plane
+    keep = ring.copy()
+    sigma, bow = 1.0, 0.0
+    scars = np.zeros(z.shape, bool)
+    for it in range(n_iter):
+        sigma = noise_nm(z, keep)
+        if not np.isfinite(sigma) or sigma <= 0:
+            sigma = 1.0
+        zs = ndimage.gaussian_filter(z, 1.0)
+        # first round: line offsets are still in, so only clear features are masked
+        feat = np.abs(zs - np.median(zs[keep])) > (max(5 * sigma, 20.0) if it == 0 else 5 * sigma)
+        feat = ndimage.binary_dilation(feat, structure=np.ones((7, 7), bool))
+        keep = valid & ~feat
+        if keep.sum() < 0.02 * valid.sum():
+            keep = valid & ring
+        surf = poly_surface(z, keep, 2, step=1 if keep.sum() < 3000 else 2)
+        if it == 0:
+            bow = float(np.ptp(surf[keep])) if keep.any() else 0.0
+        z -= surf
+        # line offsets from the far field of each row
+        cnt = keep.sum(axis=1)
+        off = np.array([np.median(z[r][keep[r]]) if cnt[r] >= 3 else np.nan for r in range(ny)])
+        good = np.isfinite(off)
+        if good.sum() >= 2:
+            off = np.interp(np.arange(ny), np.flatnonzero(good), off[good])
+            z -= off[:, None]
+        z, fixed = _remove_scars(z, keep, sigma)
+        scars |= fixed
+    sigma = noise_nm(z, keep)
+    z -= np.median(z[keep]) if keep.any() else 0.0
+    z[~valid] = np.nan
+    return Levelled(z_nm=z, mask=~keep, noise_nm=float(sigma), tilt_deg=tilt_deg, bow_nm=bow, scars=scars)
+
+
+# ----------------------------------------------------------------------------- measuring
+
+def _bilinear(img, r, c, order=1):
+    return ndimage.map_coordinates(img, [np.atleast_1d(r), np.atleast_1d(c)], order=order, mode="nearest")
+
+
+def _floor(zr, zs, pit):
+    """Floor (row, col, height nm): 2-D quadratic fitted to the raw heights about the smoothed minimum."""
+    masked = np.where(pit, zs, np.inf)
+    r0, c0 = np.unravel_index(int(np.argmin(masked)), zs.shape)
+    ny, nx = zr.shape
+    h = 2
+    ra, rb, ca, cb = max(0, r0 - h), min(ny, r0 + h + 1), max(0, c0 - h), min(nx, c0 + h + 1)
+    pr, pc = np.mgrid[ra:rb, ca:cb]
+    dr, dc, v = (pr - r0).ravel().astype(float), (pc - c0).ravel().astype(float), zr[ra:rb, ca:cb].ravel()
+    ok = np.isfinite(v)
+    if ok.sum() < 9:
+        return float(r0), float(c0), float(zs[r0, c0])
+    a = np.column_stack([np.ones_like(dr), dc, dr, dc * dc, dc * dr, dr * dr])[ok]
+    k = np.linalg.lstsq(a, v[ok], rcond=None)[0]
+    hess = np.array([[2 * k[3], k[4]], [k[4], 2 * k[5]]])
+    if np.all(np.linalg.eigvalsh(hess) > 0):
+        x = np.linalg.solve(hess, -k[1:3])
+        if np.all(np.abs(x) <= h):
+            dcx, drx = x
+            val = k[0] + k[1] * dcx + k[2] * drx + k[3] * dcx ** 2 + k[4] * dcx * drx + k[5] * drx ** 2
+            return float(r0 + drx), float(c0 + dcx), float(val)
+    return float(r0), float(c0), float(k[0])
+
+
+def _boundary(zb, level, inside_rc):
+    """Closed level contour (rows, cols) of ``zb`` that encloses ``inside_rc``, moved out to 0.
+
+    Each point moves along the gradient by ``-level / |grad|`` (first order), so the contour
+    found a few noise levels below the original surface stands for the surface level itself.
+    Returns (m, 2) [row, col] or None, and whether the contour was open (cut by the border).
+    """
+    from matplotlib.path import Path
+    from skimage.measure import find_contours
+    best, best_len, best_cut = None, 0, False
+    for c in find_contours(zb, level):
+        closed = np.allclose(c[0], c[-1])
+        if len(c) < 8:
+            continue
+        if closed and not Path(c[:, ::-1]).contains_point(inside_rc[::-1]):
+            continue
+        if not closed:
+            # an open contour around the floor: the border cuts the imprint
+            ang = np.unwrap(np.arctan2(c[:, 0] - inside_rc[0], c[:, 1] - inside_rc[1]))
+            if abs(ang[-1] - ang[0]) < np.pi:
+                continue
+        if best is None or (closed and best_cut) or (closed == (not best_cut) and len(c) < best_len):
+            best, best_len, best_cut = c, len(c), not closed
+    if best is None:
+        return None, False
+    cut = best_cut
+    gr, gc = np.gradient(zb)
+    g_r, g_c = _bilinear(gr, best[:, 0], best[:, 1]), _bilinear(gc, best[:, 0], best[:, 1])
+    g2 = np.maximum(g_r ** 2 + g_c ** 2, 1e-12)
+    step = -level / g2                                     # move to where zb would reach 0
+    step = np.clip(step, -2.0 / np.sqrt(g2), 2.0 / np.sqrt(g2))
+    return best + np.column_stack([g_r * step, g_c * step]), cut
+
+
+def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
+    """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
+
+    The heights on the last few pixels before the coarse corner are fitted by a straight
+    line; its zero crossing is the corner (where the surface meets the original level).
+    """
+    v = np.asarray(rc1, float) - rc0
+    length = float(np.hypot(*v))
+    if length < 4:
+        return np.asarray(rc1, float)
+    e = v / length
+    # follow the ridge (the valley between two facets) to the corner: aim the ray at the
+    # lowest point across it, 5 px before the coarse corner
+    nrm = np.array([-e[1], e[0]])
+    for _ in range(2):
+        tt = np.arange(-3.0, 3.01, 0.25)
+        q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
+        pv = _bilinear(zr, q[:, 0], q[:, 1], order=3)
+        j = int(np.argmin(pv))
+        if 0 < j < len(tt) - 1:
+            den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
+            tj = tt[j] + (0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0)
+            v = (length - 5.0) * e + tj * nrm
+            e = v / np.hypot(*v)
+            nrm = np.array([-e[1], e[0]])
+    s = np.arange(length - 9.0, length + 3.0, 0.25)
+    pts = rc0 + s[:, None] * e
+    ny, nx = zr.shape
+    inb = (pts[:, 0] >= 0) & (pts[:, 0] <= ny - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= nx - 1)
+    p = _bilinear(zr, pts[:, 0], pts[:, 1], order=3)
+    # the straight part of the profile: clear of the noise and of the kink at the surface level
+    use = inb & (p < -max(3 * noise, 1.5 * slope_floor)) & (s < length + 0.5) & np.isfinite(p)
+    if use.sum() < 6:
+        return np.asarray(rc1, float)
+    k = np.polyfit(s[use], p[use], 1)
+    if k[0] <= 0.2 * slope_floor:
+        return np.asarray(rc1, float)
+    s0 = -k[1] / k[0]
+    if abs(s0 - length) > 2.5:
+        return np.asarray(rc1, float)
+    return rc0 + s0 * e
+
+
+def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: float, col: float,
+                   radius_px: float, indenter: Indenter = VICKERS) -> SingleImprint | None:
+    """Measure one imprint in a levelled map (original surface near 0) without a facet model.
+
+    Parameters
+    ----------
+    z_nm : ndarray (rows, cols)
+        Levelled heights (nm).
+    pixel_um : float
+        Pixel size (µm).
+    noise_nm_ : float
+        Pixel noise (nm).
+    row, col, radius_px : float
+        Candidate from ``detect_pits`` (px).
+    indenter : Indenter
+        Geometry (number of corners).
+
+    Returns
+    -------
+    SingleImprint or None
+        None when no closed or border-cut contact boundary surrounds the candidate.
+    """
+    ny, nx = z_nm.shape
+    win = int(np.ceil(2.6 * max(radius_px, 3.0) + 8))
+    r0, r1 = max(0, int(row) - win), min(ny, int(row) + win + 1)
+    c0, c1 = max(0, int(col) - win), min(nx, int(col) + win + 1)
+    zz = np.asarray(z_nm[r0:r1, c0:c1], float)
+    fin = np.isfinite(zz)
+    zz0 = np.where(fin, zz, 0.0)
+    noise = max(float(noise_nm_), 0.05)
+    zs = ndimage.gaussian_filter(zz0, 1.0)
+    thr = max(5 * noise, 2.0)
+    lab, n = ndimage.label(zs < -thr)
+    if n == 0:
+        return None
+    rr, cc = np.mgrid[r0:r1, c0:c1]
+    near = np.hypot(rr - row, cc - col) <= max(radius_px, 3.0)
+    cand = np.where(near & (lab > 0), zs, np.inf)
+    if not np.isfinite(cand).any():
+        return None
+    k = lab[np.unravel_index(int(np.argmin(cand)), zs.shape)]
+    pit = lab == k
+    # far field: robust plane outside the grown pit (pile-up and dust rejected by the robust loss)
+    grow = max(3, int(0.15 * np.sqrt(pit.sum())))
+    far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
+    if far.sum() < 30:
+        far = fin & ~pit
+    if far.sum() < 12:
+        return None
+    pl = robust_plane(cc[far].astype(float), rr[far].astype(float), zz0[far], n_iter=6)
+    zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
+    zs = ndimage.gaussian_filter(zr, 1.0)
+    fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit)
+    depth = -fz
+    if not depth > thr:
+        return None
+    # contact boundary: a light smoothing, level a few noise levels down, moved out to 0
+    # (a level a few pixels inside: linear interpolation across the kink at the surface level
+    # would put the boundary up to half a pixel out)
+    zb = ndimage.gaussian_filter(zr, 0.7)
+    slope_px = depth / max(np.sqrt(pit.sum() / 2.0), 1.0)            # nm per pixel on the facets
+    level = -max(3.0 * noise, 1.0, min(2.5 * slope_px, 0.15 * depth))
+    zb = np.where(ndimage.binary_dilation(pit, iterations=4), zb, abs(level))   # only this pit's boundary
+    cont, cut = _boundary(zb, level, np.array([fr, fc]) - [r0, c0])
+    if cont is None:
+        return None
+    cont_rc = cont + [r0, c0]
+    # corners: extreme points of the boundary along the diagonals
+    rel = cont_rc - [fr, fc]
+    ang = np.arctan2(rel[:, 0], rel[:, 1])
+    rad = np.hypot(rel[:, 0], rel[:, 1])
+    nc = indenter.n_corners
+    theta = np.angle(np.sum(rad ** 8 * np.exp(1j * nc * ang))) / nc
+    corners = []
+    for j in range(nc):
+        phi = theta + 2 * np.pi * j / nc
+        e = np.array([np.sin(phi), np.cos(phi)])            # (row, col) of the diagonal direction
+        dphi = (ang - phi + np.pi) % (2 * np.pi) - np.pi
+        sec = np.abs(dphi) < np.pi / nc
+        if sec.sum() < 2:
+            return None
+        proj = rel[sec] @ e
+        coarse = cont_rc[sec][int(np.argmax(proj))]
+        corners.append(_corner_on_ray(zr, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise)
+                       + [r0, c0])
+    corners_rc = np.array(corners)
+    corners_um = corners_rc[:, ::-1] * pixel_um
+    outside = np.any((corners_rc < -0.5) | (corners_rc > np.array([ny, nx]) - 0.5))
+    cut = bool(cut or outside)
+    d1, d2, orient = diagonals(corners_um)
+    cx, cy, crad = circle_fit(corners_um)
+    cont_um = cont_rc[:, ::-1] * pixel_um
+    area = float("nan") if cut else _shoelace(cont_um)
+    # edge bow: mid-edge displacement from each corner-to-corner chord, outward positive
+    d_um = (d1 + d2) / 2
+    bows = np.full(nc, np.nan)
+    for j in range(nc):
+        p0, p1 = corners_um[j], corners_um[(j + 1) % nc]
+        chord = p1 - p0
+        ln = np.hypot(*chord)
+        e = chord / ln
+        nrm = np.array([e[1], -e[0]])
+        mid = (p0 + p1) / 2
+        if nrm @ (mid - [cx, cy]) < 0:
+            nrm = -nrm
+        t = (cont_um - p0) @ e / ln
+        off = (cont_um - mid) @ nrm
+        sel = (np.abs(t - 0.5) < 0.05) & (np.abs(off) < 0.3 * ln)
+        if sel.any():
+            bows[j] = float(np.median(off[sel])) / (d_um / 2)
+    # pile-up outside the contact boundary
+    from matplotlib.path import Path
+    inside = Path(cont[:, ::-1]).contains_points(np.column_stack([(cc - c0).ravel(), (rr - r0).ravel()]))
+    inside = inside.reshape(zr.shape)
+    outer = fin & ~inside & (zs > max(3 * noise, 1.0))
+    pileup = float(zs[fin & ~inside].max()) if (fin & ~inside).any() else float("nan")
+    vol = float(zr[outer].sum() * pixel_um * pixel_um * 1e-3)
+    return SingleImprint(x_um=float(cx), y_um=float(cy), corners_um=corners_um, diag1_um=float(d1),
+                         diag2_um=float(d2), d_um=float(d_um), diameter_um=float(2 * crad),
+                         orientation_deg=float(orient), area_um2=area, depth_nm=float(depth),
+                         floor_um=(float(fc * pixel_um), float(fr * pixel_um)), pileup_nm=pileup,
+                         pileup_volume_um3=vol, edge_bow=bows, cut_by_border=cut, contour_um=cont_um,
+                         n_pixels=int(pit.sum()))
+
+
+def _shoelace(p):
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
