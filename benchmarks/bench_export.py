@@ -55,7 +55,7 @@ def _median_s(fn, repeats=15):
 
 def structure():
     """Structural check (inspect_bytes) and the note's HTML on the real tables: median of 15 runs."""
-    from markcal.reports.table_report import render_table_report_html
+    from markcal.reports.table_report import table_report_html
     root = Path(os.environ.get("MARKCAL_REALDATA", Path(__file__).resolve().parents[1].parent / "shared" / "realdata"))
     if not (root / "galvo_tables").is_dir():
         root = Path("/work/shared/realdata")
@@ -64,7 +64,7 @@ def structure():
         data = (root / "galvo_tables" / name).read_bytes()
         t = inspect_bytes(data, name)
         t_read = _median_s(lambda: inspect_bytes(data, name))
-        t_html = _median_s(lambda: render_table_report_html(t), repeats=5)
+        t_html = _median_s(lambda: table_report_html(t), repeats=5)
         print(f"{name:10s}  {t.structure.first_along:12s}  {t.structure.evidence:+8.2f}  {t_read * 1e3:16.2f}  "
               f"{t_html * 1e3:12.0f}")
 

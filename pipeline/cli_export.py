@@ -54,7 +54,7 @@ def cmd_export(args) -> int:
 def cmd_inspect(args) -> int:
     from markcal.pipeline.flows.export import inspect_table
     from markcal.reports.files import atomic_write_text, write_csv
-    from markcal.reports.table_report import render_table_report_html
+    from markcal.reports.table_report import table_report_html
 
     cor, ctb = _cor_ctb_options(args)
     t = inspect_table(args.table, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
@@ -66,7 +66,7 @@ def cmd_inspect(args) -> int:
     unit = "um" if t.unit == "µm" else t.unit
     write_csv(os.path.join(out, "table.csv"), {"x_mm": gx.ravel(), "y_mm": gy.ravel(),
                                                 f"u_{unit}": t.u.ravel(), f"v_{unit}": t.v.ravel()})
-    atomic_write_text(os.path.join(out, "report.html"), render_table_report_html(t))
+    atomic_write_text(os.path.join(out, "report.html"), table_report_html(t))
     print(os.path.abspath(os.path.join(out, "report.html")))
     return 0
 

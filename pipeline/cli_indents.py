@@ -8,15 +8,18 @@ from markcal.pipeline.progress import progress
 
 
 def cmd_indents(args) -> int:
-    from markcal.pipeline.flows.indents import IndentsOptions, read_array_spec, run_indents
-    from markcal.reports.indent_outputs import write_indent_outputs
+    from markcal.pipeline.config import read_array_spec
+    from markcal.pipeline.flows.indents import indents_options, run_indents
+    from markcal.pipeline.registry import get_flow
 
     say = progress(args.quiet)
     spec = read_array_spec(args.array) if args.array else None
-    opt = IndentsOptions(kind=args.kind, pixel_size_um=args.pixel_size_um, load_mN=args.load_mN)
-    res = run_indents(args.images, spec, opt, progress=say)
+    flow = get_flow("indents")
+    options = {**flow.descriptor.options, **{k: getattr(args, k) for k in flow.descriptor.options
+                                             if getattr(args, k, None) is not None}}
+    res = run_indents(args.images, spec, indents_options(options), progress=say)      # several files pooled
     say("writing tables and report")
-    paths = write_indent_outputs(res, args.out, report=not args.no_report)
+    paths = flow.write(res, args.out, report=not args.no_report)
     s = res.summary
     say(f"{s['n_imprints']} imprints in {s['n_files_ok']} file(s); mean diameter {s['mean_diameter_um']:.3f} µm; "
         f"{s['n_out_of_tolerance']} out of tolerance, {s['n_low_hd']} with H/D < {s['min_hd']}")
@@ -106,10 +109,13 @@ def _positive(v):
 def register(sub, render_sub) -> None:
     """Add ``indents`` to the top-level commands and ``afm``, ``om`` to ``render``."""
     p = sub.add_parser("indents", help="AFM maps / OM images of indentation arrays -> sizes, depths, positions, report")
-    p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM or AFM), .gsf, .gwy, .ibw; one array per file")
+    p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM, SEM or AFM), AFM maps .gsf, .gwy, .ibw, Bruker "
+                                               "NanoScope (.spm, .000-.999; by content), Nanosurf .nid, JPK .jpk, "
+                                               "WSxM .stp/.top")
     p.add_argument("--array", help="array spec (ARRAY.toml): rows, cols, pitch_um, nominal_diameter_um")
     p.add_argument("--kind", choices=["afm", "om"], help="override the kind guessed from the file")
     p.add_argument("--pixel-size-um", type=_positive, help="pixel size (µm); overrides the file's")
+    p.add_argument("--channel", help="AFM channel to measure (default: the height/topography channel, trace)")
     p.add_argument("--load-mN", type=_positive, help="indentation load (mN): Vickers hardness HV = 0.1891 F / d^2")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-report", action="store_true", help="skip report.html")

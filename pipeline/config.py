@@ -71,7 +71,7 @@ def _where(sec: str, key: str) -> str:
 
 def _number(v, is_int: bool, spec: Key, where: str, path):
     if isinstance(v, bool) or not isinstance(v, (int, float)) or (is_int and not isinstance(v, int)):
-        raise MarkcalError(f"{where} must be {'a whole number' if is_int else 'a number'} (got {v!r})", path)
+        raise MarkcalError(f"{where} must be {'an integer' if is_int else 'a number'} (got {v!r})", path)
     if not math.isfinite(v):
         raise MarkcalError(f"{where} must be finite (got {v!r})", path)
     unit = f" {spec.unit}" if spec.unit else ""
@@ -95,8 +95,6 @@ def _value(v, spec: Key, sec: str, key: str, path):
         if not isinstance(v, list) or not v:
             raise MarkcalError(f"{where} must be a non-empty list of numbers", path)
         return tuple(_number(x, t == "ints", spec, where, path) for x in v)
-    if t == "any":
-        return v
     if t == "bool":
         if not isinstance(v, bool):
             raise MarkcalError(f"{where} must be true or false (got {v!r})", path)
@@ -133,11 +131,6 @@ def parse_config(d: dict, schema: dict, path) -> dict:
             if spec.required and k not in given:
                 raise MarkcalError(f"missing key '{k}'" + (f" in [{sec}]" if sec else ""), path)
     return out
-
-
-def check_sections(d: dict, allowed: dict, path) -> None:
-    """Refuse sections and keys not in ``allowed`` (section -> set of keys), listing the known ones."""
-    parse_config(d, {sec: {k: Key("any") for k in keys} for sec, keys in allowed.items()}, path)
 
 
 def read_config(path, schema: dict, what: str = "config file") -> dict:
@@ -186,6 +179,31 @@ def read_selfcal_setup(path):
         return SelfcalSetup(**c)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
+
+
+# ------------------------------------------------------------------ indentation array spec
+
+def _array_schema() -> dict:
+    from markcal.stages.indent_single import INDENTERS
+    return {"array": {"rows": Key("int", required=True, min=1), "cols": Key("int", required=True, min=1),
+                      "pitch_um": Key("float", required=True, positive=True, unit="µm"),
+                      "nominal_diameter_um": Key("float", required=True, positive=True, unit="µm")},
+            "indenter": {"kind": Key("str", "vickers", choices=tuple(INDENTERS)),
+                         "load_mN": Key("float", None, positive=True, unit="mN")}}
+
+
+def read_array_spec(path):
+    """Read ARRAY.toml: ``[array] rows cols pitch_um nominal_diameter_um`` (µm) and
+    ``[indenter] kind load_mN`` (optional: Vickers; the load gives the hardness)."""
+    from markcal.stages.indent_array import ArraySpec
+
+    path = os.fspath(path)
+    c = read_config(path, _array_schema(), "array spec")
+    a, ind = c["array"], c["indenter"]
+    spec = ArraySpec(**a, indenter=ind["kind"], load_mN=ind["load_mN"])
+    if spec.nominal_diameter_um >= spec.pitch_um and spec.rows * spec.cols > 1:
+        raise MarkcalError("nominal_diameter_um must be smaller than pitch_um", path)
+    return spec
 
 
 # ------------------------------------------------------------------ servo simulation config

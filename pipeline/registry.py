@@ -43,7 +43,7 @@ register("selfcal", "markcal.pipeline.flows.selfcal", "markcal.reports.selfcal_o
 register("servo", "markcal.pipeline.flows.servo", "markcal.reports.servo_outputs:write_servo_outputs")
 register("grid", "markcal.pipeline.flows.grid", "markcal.reports.grid_outputs:write_grid_outputs")
 register("scan", "markcal.pipeline.flows.scan", "markcal.reports.scan_outputs:write_scan_outputs")
-register("indents", "markcal.pipeline.flows.indents", "markcal.reports.indent_outputs:write_indent_outputs")
+register("indents", "markcal.pipeline.flows.indents", "markcal.reports.indents_outputs:write_indents_outputs")
 register("path", "markcal.pipeline.flows.path", "markcal.reports.path_outputs:write_path_outputs")
 register("pmcal", "markcal.pipeline.flows.pmcal", "markcal.reports.pmcal_outputs:write_pmcal_outputs")
 

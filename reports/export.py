@@ -9,7 +9,7 @@ the vendor tool's display before loading it into a machine.
 from __future__ import annotations
 
 from markcal.reports.files import atomic_write_bytes, atomic_write_text
-from markcal.reports.table_report import render_table_report_html
+from markcal.reports.table_report import table_report_html
 
 __all__ = ["export_note_rows", "note_path", "write_export"]
 
@@ -58,6 +58,6 @@ def write_export(out: str, data: bytes, t, facts: dict, report: bool = True) -> 
     if not report:
         return None
     path = note_path(out)
-    atomic_write_text(path, render_table_report_html(t, title=f"markcal export — {t.format} table",
+    atomic_write_text(path, table_report_html(t, title=f"markcal export — {t.format} table",
                                                      note_rows=export_note_rows(t, facts)))
     return path

@@ -8,11 +8,11 @@ with the region where it is valid (the whole lens field).
 """
 from __future__ import annotations
 
-import os
 
 import numpy as np
 
-from .files import atomic_write_text, start_outputs, write_csv, write_json
+from markcal.reports.files import OutputFolder
+from markcal.reports.grid_report import grid_report_html
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "line", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
                     "x_input_mm", "y_input_mm", "fit_dx_mm", "fit_dy_mm", "cv_dx_mm", "cv_dy_mm")
@@ -43,29 +43,21 @@ def write_grid_outputs(result, out_dir, report: bool = True) -> dict:
     dict
         Output name -> path.
     """
-    os.makedirs(out_dir, exist_ok=True)
-    p = {name: os.path.join(out_dir, name) for name in (
-        "fiducials.csv", "deviations.csv", "correction_grid.csv", "stage_error.csv", "model.json", "report.html",
-        "summary.json")}
-    start_outputs(out_dir)
+    out = OutputFolder(out_dir)
     f = result.fiducials
-    write_csv(p["fiducials.csv"], {k: f[k] for k in FIDUCIAL_COLUMNS})
-    write_csv(p["deviations.csv"], {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
+    out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
+    out.csv("deviations.csv", {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
                                     "dx_mm": f["dx_mm"], "dy_mm": f["dy_mm"], "d_mm": np.hypot(f["dx_mm"], f["dy_mm"])})
     xy, dxy = result.grid_xy_mm, result.grid_dxy_mm
-    write_csv(p["correction_grid.csv"], {"x_mm": xy[:, 0], "y_mm": xy[:, 1], "dx_mm": dxy[:, 0], "dy_mm": dxy[:, 1],
+    out.csv("correction_grid.csv", {"x_mm": xy[:, 0], "y_mm": xy[:, 1], "dx_mm": dxy[:, 0], "dy_mm": dxy[:, 1],
                                          "outside_hull_mm": result.grid_hull_mm,
                                          "extrapolated": result.extrapolated.astype(int)})
     # the selfcal flow's layout (command x + G to reach x, µm) so that `markcal export a3200` reads the galvo too
     xs, ys = np.unique(xy[:, 0]), np.unique(xy[:, 1])
-    write_csv(p["stage_error.csv"], {"m": np.searchsorted(ys, xy[:, 1]), "n": np.searchsorted(xs, xy[:, 0]),
+    out.csv("stage_error.csv", {"m": np.searchsorted(ys, xy[:, 1]), "n": np.searchsorted(xs, xy[:, 0]),
                                      "x_mm": xy[:, 0], "y_mm": xy[:, 1],
                                      "gx_um": 1e3 * dxy[:, 0], "gy_um": 1e3 * dxy[:, 1]})
-    write_json(p["model.json"], model_document(result))
+    out.json("model.json", model_document(result))
     if report:
-        from .grid_report import render_grid_report_html
-        atomic_write_text(p["report.html"], render_grid_report_html(result))
-    else:
-        p.pop("report.html")
-    write_json(p["summary.json"], result.summary)
-    return p
+        out.text("report.html", grid_report_html(result))
+    return out.finish(result.summary)

@@ -11,7 +11,7 @@ import numpy as np
 from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
 from markcal.stages.galvo_fit import KINDS, PARAM_NAMES
 
-__all__ = ["render_grid_report_html"]
+__all__ = ["grid_report_html"]
 
 DATA_FILES = (
     ("fiducials.csv", "one row per measured mark: commanded (nominal) and registered measured positions, input "
@@ -150,7 +150,7 @@ def _extrapolated_list(result) -> str:
     return head + table(["x (mm)", "y (mm)", "outside hull by", "dx", "dy"], rows, left_cols=0) + more
 
 
-def render_grid_report_html(result) -> str:
+def grid_report_html(result) -> str:
     """Render a grid flow result as one self-contained HTML page (no scripts, no external URLs)."""
     s = result.summary
     verdict = (f"{s['n_marks']} marks · measured deviation RMS {num(s['rms_mm'])} · {esc(MODEL_LABELS[s['model']])}: "

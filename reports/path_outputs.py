@@ -11,18 +11,13 @@ import numpy as np
 
 from markcal.stages.errors import MarkcalError
 
-from .files import atomic_write_bytes, atomic_write_text, start_outputs, write_json
-
-#: writers of the job formats that carry an order: format -> (module, function)
-_WRITERS = {"dxf": ("job_dxf", "write_dxf"), "svg": ("job_svg", "write_svg"),
-            "hpgl": ("job_hpgl", "write_hpgl"), "gcode": ("job_gcode", "write_gcode")}
-
+from markcal.reports.files import OutputFolder
+from markcal.reports.path_report import ordered_names, path_report_html
+from markcal.stages.job_formats import job_writer
 
 def ordered_job_bytes(result) -> bytes:
     """The job file in marking order in the input's own format (DXF, SVG, HPGL, G-code)."""
-    import importlib
-    mod, fn = _WRITERS[result.inp.fmt]
-    out = getattr(importlib.import_module(f"markcal.stages.{mod}"), fn)(result.inp, result.tour)
+    out = job_writer(result.inp.fmt)(result.inp, result.tour)
     return out if isinstance(out, bytes) else out.encode("utf-8")
 
 
@@ -77,16 +72,6 @@ def ordered_json_doc(result) -> dict:
     return doc
 
 
-def ordered_names(result) -> list:
-    """File names of the ordered job: ``ordered.csv``; ``ordered.json``; or ``ordered.<ext>`` and ``ordered.json``."""
-    if result.inp.fmt == "csv":
-        return ["ordered.csv"]
-    if result.inp.fmt in _WRITERS:
-        ext = os.path.splitext(result.source)[1].lower()
-        return [f"ordered{ext}", "ordered.json"]
-    return ["ordered.json"]
-
-
 def write_path_outputs(result, out_dir, report: bool = True) -> dict:
     """Write every output of a path flow result into ``out_dir``; summary.json last.
 
@@ -96,25 +81,20 @@ def write_path_outputs(result, out_dir, report: bool = True) -> dict:
         Output name -> path.
     """
     names = ordered_names(result)
-    p = {name: os.path.join(out_dir, name) for name in names + ["report.html", "summary.json"]}
     src = os.path.abspath(result.source)
-    for name, path in p.items():
-        if os.path.abspath(path) == src:
+    for name in names + ["report.html", "summary.json"]:
+        if os.path.abspath(os.path.join(out_dir, name)) == src:
             raise MarkcalError(f"--out would overwrite the input job ({name})", result.source)
-    start_outputs(out_dir)
+    out = OutputFolder(out_dir)
     if result.inp.fmt == "csv":
-        atomic_write_text(p["ordered.csv"], ordered_csv_text(result))
+        out.text("ordered.csv", ordered_csv_text(result))
     else:
-        write_json(p["ordered.json"], ordered_json_doc(result))
-    if result.inp.fmt in _WRITERS:
-        atomic_write_bytes(p[names[0]], ordered_job_bytes(result))
+        out.json("ordered.json", ordered_json_doc(result))
+    if job_writer(result.inp.fmt) is not None:
+        out.bytes(names[0], ordered_job_bytes(result))
     if report:
-        from .path_report import render_path_report_html
-        atomic_write_text(p["report.html"], render_path_report_html(result))
-    else:
-        p.pop("report.html")
-    write_json(p["summary.json"], result.summary)
-    return p
+        out.text("report.html", path_report_html(result))
+    return out.finish(result.summary)
 
 
-__all__ = ["write_path_outputs", "ordered_csv_text", "ordered_json_doc", "ordered_job_bytes", "ordered_names"]
+__all__ = ["write_path_outputs", "ordered_csv_text", "ordered_json_doc", "ordered_job_bytes"]

@@ -5,17 +5,29 @@ module neither prints nor writes files.
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from matplotlib.collections import LineCollection
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.stages.job_formats import job_writer
 from markcal.stages.path_job import tour_points
 from markcal.stages.stats import pct_less
 
-__all__ = ["render_path_report_html"]
+__all__ = ["path_report_html"]
 
 LABELS = {"input": "input order", "raster": "raster (serpentine)", "nn": "nearest neighbour",
           "ga": "paper GA", "ls": "local search (2-opt, Or-opt, kicks)", "ga+ls": "GA + local search"}
+
+
+def ordered_names(result) -> list:
+    """File names of the ordered job: ``ordered.csv``; ``ordered.json``; or ``ordered.<ext>`` and ``ordered.json``."""
+    if result.inp.fmt == "csv":
+        return ["ordered.csv"]
+    if job_writer(result.inp.fmt) is not None:
+        return [f"ordered{os.path.splitext(result.source)[1].lower()}", "ordered.json"]
+    return ["ordered.json"]
 
 
 def _draw_path(ax, job, tour, title):
@@ -94,7 +106,7 @@ def _methods_table(res):
     return table(["order", "jump length", "vs input", "jump time", "job time", "vs input", "runtime"], rows)
 
 
-def render_path_report_html(res) -> str:
+def path_report_html(res) -> str:
     """The whole report page for a :class:`markcal.pipeline.flows.path.PathResult`."""
     s = res.summary
     u = res.method_used
@@ -142,7 +154,6 @@ def render_path_report_html(res) -> str:
                f"MP {res.options.ga.mutation_p}; paper Fig. 7C), with the baselines and the local-search "
                "result as lines.")
         parts.append("<h2>GA convergence</h2>" + img(_convergence_figure(res), "GA convergence", cap))
-    from markcal.reports.path_outputs import ordered_names
     files = [(name, "the job in marking order (same format as the input)" if k == 0 else
               "the strokes in marking order (mm) with their input index, direction and entry vertex")
              for k, name in enumerate(ordered_names(res))]

@@ -5,7 +5,7 @@ import numpy as np
 
 from markcal.reports.html import esc, img, new_figure, nice_number, num, page, png_b64, table
 
-__all__ = ["render_table_report_html", "structure_rows"]
+__all__ = ["table_report_html", "structure_rows"]
 
 
 def _figure(t) -> str:
@@ -60,7 +60,7 @@ def structure_rows(t) -> list:
     return rows
 
 
-def render_table_report_html(t, title: str | None = None, note_rows: list | None = None) -> str:
+def table_report_html(t, title: str | None = None, note_rows: list | None = None) -> str:
     """One self-contained page for an :class:`~markcal.pipeline.flows.export.Inspected` table.
 
     ``note_rows`` (the export note) come first when given; structural warnings

@@ -8,6 +8,19 @@ import numpy as np
 from .errors import MarkcalError
 from .register import index_grid, robust_rigid_fit
 
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What was indented: an R x C array at ``pitch_um`` of one nominal size (ARRAY.toml)."""
+
+    rows: int
+    cols: int
+    pitch_um: float
+    nominal_diameter_um: float
+    indenter: str = "vickers"
+    load_mN: float | None = None            # [indenter] load_mN: for the Vickers hardness
+
+
 __all__ = ["ArrayFit", "index_array", "size_stats"]
 
 

@@ -151,3 +151,17 @@ def build_job(strokes, source=None) -> Job:
     if not strokes:
         raise MarkcalError("no geometry: the job has no strokes the path flow can mark", source)
     return make_job(strokes, source)
+
+
+#: writers of the job formats that carry an order: format -> (module, function)
+_WRITERS = {"dxf": ("job_dxf", "write_dxf"), "svg": ("job_svg", "write_svg"),
+            "hpgl": ("job_hpgl", "write_hpgl"), "gcode": ("job_gcode", "write_gcode")}
+
+
+def job_writer(fmt: str):
+    """The function writing a job back in format ``fmt`` (``writer(job_file, tour) -> bytes | str``), or None."""
+    if fmt not in _WRITERS:
+        return None
+    import importlib
+    mod, fn = _WRITERS[fmt]
+    return getattr(importlib.import_module(f"markcal.stages.{mod}"), fn)

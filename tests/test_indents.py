@@ -14,7 +14,8 @@ import pytest
 from markcal.fixtures.indent_maps import (AfmOptions, OmOptions, array_toml, asylum_ibw, render_afm, render_om,
                                           tiff_bytes)
 from markcal.pipeline.cli import main
-from markcal.pipeline.flows.indents import read_array_spec, run_indents
+from markcal.pipeline.config import read_array_spec
+from markcal.pipeline.flows.indents import run_indents
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import gsf_bytes, read_image
 from markcal.stages.level import level_afm
@@ -297,9 +298,9 @@ def test_one_bad_file_fails_alone(tmp_path, capsys, good_map):
 def test_array_spec_strict(tmp_path):
     p = str(tmp_path / "a.toml")
     for text, msg in (("[array]\nrows = 2\ncols = 2\npitch_um = 8.0\n", "missing key"),
-                      ("[array]\nrows = 2.5\ncols = 2\npitch_um = 8.0\nnominal_diameter_um = 2\n", "integers"),
+                      ("[array]\nrows = 2.5\ncols = 2\npitch_um = 8.0\nnominal_diameter_um = 2\n", "must be an integer"),
                       ("[array]\nrows = 2\ncols = 2\npitch_um = 8.0\nnominal_diameter_um = 2\n[indenter]\n"
-                       "kind = \"berkovich\"\n", "not supported"),
+                       "kind = \"berkovich\"\n", "must be one of vickers"),
                       ("[grid]\nrows = 2\n", "unknown section")):
         with open(p, "w") as fh:
             fh.write(text)

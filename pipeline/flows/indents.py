@@ -13,11 +13,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from markcal.pipeline.config import check_sections, load_toml
+from markcal.pipeline.config import read_array_spec
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.stages import indent as ind
 from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
+from markcal.stages.indent_array import ArraySpec
 from markcal.stages.indent_single import INDENTERS, hardness_hv, level_single, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
@@ -29,59 +30,12 @@ MIN_HD = 0.04
 
 
 @dataclass(frozen=True)
-class ArraySpec:
-    """What was indented: an R x C array at ``pitch_um`` of one nominal size (ARRAY.toml)."""
-
-    rows: int
-    cols: int
-    pitch_um: float
-    nominal_diameter_um: float
-    indenter: str = "vickers"
-    load_mN: float | None = None            # [indenter] load_mN: for the Vickers hardness
-
-
-def read_array_spec(path) -> ArraySpec:
-    """Read ARRAY.toml strictly: unknown sections or keys and bad values are errors."""
-    path = os.fspath(path)
-    d = load_toml(path, "array spec")
-    check_sections(d, {"array": {"rows", "cols", "pitch_um", "nominal_diameter_um"}, "indenter": {"kind", "load_mN"}}, path)
-    a = d.get("array")
-    if a is None:
-        raise MarkcalError("missing section [array]", path)
-    missing = [k for k in ("rows", "cols", "pitch_um", "nominal_diameter_um") if k not in a]
-    if missing:
-        raise MarkcalError(f"missing key(s) {', '.join(missing)} in [array]", path)
-    kind = d.get("indenter", {}).get("kind", "vickers")
-    if kind not in INDENTERS:
-        raise MarkcalError(f"indenter kind '{kind}' is not supported (only {', '.join(map(repr, INDENTERS))})", path)
-    load = d.get("indenter", {}).get("load_mN")
-    if load is not None and (isinstance(load, bool) or not isinstance(load, (int, float)) or not load > 0):
-        raise MarkcalError(f"[indenter] load_mN must be a positive number, got {load!r}", path)
-    try:
-        if isinstance(a["rows"], bool) or isinstance(a["cols"], bool):
-            raise TypeError("rows and cols must be integers")
-        if int(a["rows"]) != a["rows"] or int(a["cols"]) != a["cols"]:
-            raise ValueError("rows and cols must be integers")
-        spec = ArraySpec(rows=int(a["rows"]), cols=int(a["cols"]), pitch_um=float(a["pitch_um"]),
-                         nominal_diameter_um=float(a["nominal_diameter_um"]), indenter=kind,
-                         load_mN=None if load is None else float(load))
-    except (TypeError, ValueError) as exc:
-        raise MarkcalError(f"bad value: {exc}", path) from None
-    if spec.rows < 1 or spec.cols < 1:
-        raise MarkcalError("rows and cols must be at least 1", path)
-    if not (spec.pitch_um > 0 and spec.nominal_diameter_um > 0):
-        raise MarkcalError("pitch_um and nominal_diameter_um must be positive", path)
-    if spec.nominal_diameter_um >= spec.pitch_um and spec.rows * spec.cols > 1:
-        raise MarkcalError("nominal_diameter_um must be smaller than pitch_um", path)
-    return spec
-
-
-@dataclass(frozen=True)
 class IndentsOptions:
     """Settings of the indents flow."""
 
     kind: str | None = None                 # "afm" / "om"; None: from the file
     pixel_size_um: float | None = None      # overrides the file's pixel size
+    channel: str | None = None              # AFM channel; None: the height/topography channel, trace
     tolerance_um: float = TOLERANCE_UM
     min_hd: float = MIN_HD
     load_mN: float | None = None            # indentation load: HV = 0.1891 F / d^2 (overrides the spec's)
@@ -165,7 +119,7 @@ def run_indents(paths, spec: ArraySpec | None = None, options: IndentsOptions | 
 def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m: None) -> FileResult:
     """Read, level (AFM), detect, measure and index the imprints of one image."""
     t0 = time.perf_counter()
-    img = read_image(path, opt.pixel_size_um, opt.kind)
+    img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     try:
         return _measure(img, spec, opt, say, t0)
     except MarkcalError as exc:
@@ -340,11 +294,15 @@ def _claims(path) -> bool:
     return sniff_format(head) is not None
 
 
+def indents_options(o: dict) -> IndentsOptions:
+    """:class:`IndentsOptions` from the descriptor's option dict ("" and 0 mean "from the file")."""
+    return IndentsOptions(kind=o["kind"] or None, pixel_size_um=o["pixel_size_um"] or None,
+                          channel=o["channel"] or None, load_mN=o["load_mN"] or None)
+
+
 def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
     spec = read_array_spec(spec_path) if spec_path else None
-    res = run_indents([path], spec, IndentsOptions(kind=options["kind"] or None,
-                                                   pixel_size_um=options["pixel_size_um"] or None),
-                      progress=progress)
+    res = run_indents([path], spec, indents_options(options), progress=progress)
     if res.failed:
         raise MarkcalError(res.failed[0][1], res.failed[0][0])
     return res
@@ -353,7 +311,7 @@ def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
 FLOW = FlowDescriptor(
     name="indents", help="micro-indentation arrays and imprints from AFM height maps and micrographs",
     claims=_claims, run=_run_descriptor, spec_name="array.toml",
-    options={"kind": "", "pixel_size_um": 0.0, "no_report": False},
+    options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "no_report": False},
     key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
                  Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),
     tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0},

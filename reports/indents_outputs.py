@@ -1,9 +1,8 @@
 """Files of the indents flow: indents.csv, sizes.csv, report.html, summary.json (last)."""
 from __future__ import annotations
 
-import os
-
-from .files import atomic_write_text, start_outputs, write_csv, write_json
+from markcal.reports.files import OutputFolder
+from markcal.reports.indents_report import indents_report_html
 
 #: indents.csv: the issue's columns first, then file, kind, nominal and fit quality
 INDENT_COLUMNS = ("id", "row", "col", "x_um", "y_um", "dx_um", "dy_um", "diameter_um", "diag1_um", "diag2_um",
@@ -14,7 +13,7 @@ SIZE_COLUMNS = ("nominal_um", "n", "mean_diameter_um", "sd_diameter_um", "max_ab
                 "mean_depth_nm")
 
 
-def write_indent_outputs(result, out_dir, report: bool = True) -> dict:
+def write_indents_outputs(result, out_dir, report: bool = True) -> dict:
     """Write every output of an indents result into ``out_dir``; summary.json last.
 
     Row and column are left empty without an array spec (and for imprints off the grid).
@@ -24,18 +23,13 @@ def write_indent_outputs(result, out_dir, report: bool = True) -> dict:
     dict
         Output name -> path.
     """
-    start_outputs(out_dir)
-    p = {n: os.path.join(out_dir, n) for n in ("indents.csv", "sizes.csv", "report.html", "summary.json")}
+    out = OutputFolder(out_dir)
     t = result.indents
     cols = {k: t[k] for k in INDENT_COLUMNS}
     for k in ("row", "col"):
         cols[k] = [("" if v < 0 else int(v)) for v in t[k]]
-    write_csv(p["indents.csv"], cols)
-    write_csv(p["sizes.csv"], {k: result.sizes[k] for k in SIZE_COLUMNS})
+    out.csv("indents.csv", cols)
+    out.csv("sizes.csv", {k: result.sizes[k] for k in SIZE_COLUMNS})
     if report:
-        from .indent_report import render_indent_report_html
-        atomic_write_text(p["report.html"], render_indent_report_html(result))
-    else:
-        p.pop("report.html")
-    write_json(p["summary.json"], result.summary)
-    return p
+        out.text("report.html", indents_report_html(result))
+    return out.finish(result.summary)

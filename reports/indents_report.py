@@ -13,7 +13,7 @@ import numpy as np
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 
-__all__ = ["render_indent_report_html"]
+__all__ = ["indents_report_html"]
 
 DATA_FILES = (
     ("indents.csv", "one row per imprint: id, row, col, position, dx/dy, diameter, diagonals, depth, H/D, "
@@ -163,7 +163,7 @@ def _gallery(files):
     return img(png_b64(fig), "gallery", cap)
 
 
-def render_indent_report_html(res) -> str:
+def indents_report_html(res) -> str:
     """The whole report page of an :class:`IndentsResult`."""
     s = res.summary
     t = res.indents
