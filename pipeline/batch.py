@@ -12,7 +12,6 @@ spawns its workers, so the libraries the flows load are limited.
 """
 from __future__ import annotations
 
-import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -20,9 +19,10 @@ from typing import Callable
 
 from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext
-from markcal.pipeline.registry import all_flows, get_flow
+from markcal.pipeline.registry import all_flows, get_flow, run_and_write
 from markcal.reports.files import start_outputs
 from markcal.stages.errors import MarkcalError, one_line
+from markcal.stages.verdict import evaluate as evaluate_verdict
 
 #: file names written in OUT_DIR itself (not per-input folders)
 INDEX_FILES = ("index.html", "summary.csv", "summary.json")
@@ -151,39 +151,10 @@ def is_done(job) -> bool:
 
 # ------------------------------------------------------------------ records and pass/fail
 
-def _finite(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-
-
 def evaluate(summary: dict, tolerances: dict) -> tuple:
-    """Check a summary against ``max_<key>``/``min_<key>`` limits.
-
-    A key the summary does not have fails ("missing": catches typos in
-    batch.toml); a key whose value is null/NaN is not applicable and passes.
-
-    Returns
-    -------
-    checks : str
-        The limits applied, e.g. ``"rms_mm <= 0.05"``.
-    failed : str
-        The violated ones with the value, ``"; "``-joined ("" when all hold).
-    """
-    checks, failed = [], []
-    for tk in sorted(tolerances):
-        lim = tolerances[tk]
-        key, op = tk[4:], ("<=" if tk.startswith("max_") else ">=")
-        checks.append(f"{key} {op} {lim:g}")
-        if key not in summary:
-            failed.append(f"{key} missing")
-            continue
-        v = summary[key]
-        if v is None or (isinstance(v, float) and not math.isfinite(v)):
-            continue                    # not applicable to this input (e.g. overshoot of a tracking trace)
-        if not _finite(v):
-            failed.append(f"{key} not a number")
-        elif (op == "<=" and v > lim) or (op == ">=" and v < lim):
-            failed.append(f"{key} {v:.4g} {'>' if op == '<=' else '<'} {lim:g}")
-    return "; ".join(checks), "; ".join(failed)
+    """``(checks, failed)`` of a summary against its limits (see :func:`markcal.stages.verdict.evaluate`)."""
+    v = evaluate_verdict(summary, tolerances)
+    return v.checks, v.failed
 
 
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
@@ -223,8 +194,8 @@ def run_job(job: dict) -> dict:
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
         start_outputs(job["out_dir"])     # a failure now must not leave an old summary vouching
-        result = flow.descriptor.run(job["input"], job.get("spec"), job["options"], None)
-        flow.write(result, job["out_dir"], report=not job["options"]["no_report"])
+        result, _ = run_and_write(job["flow"], job["input"], job["out_dir"], spec_path=job.get("spec"),
+                                  options=job["options"], tolerances=job["tolerances"])
         summary = result.summary
         return make_record(job, summary, runtime_s=time.perf_counter() - t0)
     except Exception as exc:  # noqa: BLE001  failure isolation: every error becomes a one-line reason

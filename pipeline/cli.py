@@ -23,10 +23,16 @@ COMMAND_MODULES: tuple = (
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="markcal", description="Measure marked plates; write correction tables and reports.")
-    sub = ap.add_subparsers(dest="command", required=True)
+    from markcal.pipeline.cli_common import Parser
+    from markcal.pipeline.registry import markcal_version
+
+    ap = Parser(prog="markcal", description="Measure marked plates; write correction tables and reports. "
+                                            "Exit status: 0 done, 1 bad input, 4 ran but out of tolerance "
+                                            "(batch: 3 some inputs failed).")
+    ap.add_argument("--version", action="version", version=f"markcal {markcal_version()}")
+    sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
     rd = sub.add_parser("render", help="render synthetic instrument data with ground truth")
-    rsub = rd.add_subparsers(dest="what", required=True)
+    rsub = rd.add_subparsers(dest="what", required=True, parser_class=Parser)
     for name in COMMAND_MODULES:
         importlib.import_module(name).register(sub, rsub)
     return ap
@@ -42,6 +48,10 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("markcal: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:              # a folder that cannot be written, a full disk: one line, no traceback
+        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+        print(f"markcal: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -3,23 +3,25 @@ from __future__ import annotations
 
 import os
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.stages.errors import MarkcalError
 
 
 def cmd_grid(args) -> int:
     from markcal.pipeline.progress import progress
-    from markcal.pipeline.registry import get_flow, run_and_write
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, get_flow, run_and_write
 
     say = progress(args.quiet)
     options = {k: getattr(args, k) for k in get_flow("grid").descriptor.options if getattr(args, k) is not None}
-    res, paths = run_and_write("grid", args.measured, args.out, options=options, progress=say)
+    res, paths = run_and_write("grid", args.measured, args.out, options=options, progress=say, **run_options(args))
     s = res.summary
     cv = ", ".join(f"{k} {v:.4f}" for k, v in res.choice.cv_rmse_mm.items())
     say(f"{s['n_marks']} marks{' (mirrored)' if s['mirrored'] else ''}, deviation RMS {s['rms_mm']:.4f} mm; "
         f"{s['folds']}-fold CV error (mm): {cv}; using {s['model']}; {s['n_extrapolated']} of {s['n_nodes']} "
         "nodes extrapolated")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def cmd_render_grid(args) -> int:
@@ -67,6 +69,7 @@ def register(sub, render_sub) -> None:
     g.add_argument("--seed", type=int, default=None, help="seed of the CV folds")
     g.add_argument("--no-report", action="store_true", help="skip report.html")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(g)
     g.set_defaults(func=cmd_grid)
 
     rg = render_sub.add_parser("grid", help="synthetic hand-measured galvo grid with truth")

@@ -4,13 +4,15 @@ from __future__ import annotations
 import os
 import sys
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.pipeline.progress import progress
 
 
 def cmd_indents(args) -> int:
     from markcal.pipeline.config import read_array_spec
     from markcal.pipeline.flows.indents import indents_options, run_indents
-    from markcal.pipeline.registry import get_flow
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, get_flow, judge
 
     say = progress(args.quiet)
     spec = read_array_spec(args.array) if args.array else None
@@ -18,6 +20,7 @@ def cmd_indents(args) -> int:
     options = {**flow.descriptor.options, **{k: getattr(args, k) for k in flow.descriptor.options
                                              if getattr(args, k, None) is not None}}
     res = run_indents(args.images, spec, indents_options(options), progress=say)      # several files pooled
+    judge("indents", res.summary, list(args.images), args.array, **run_options(args))
     say("writing tables and report")
     paths = flow.write(res, args.out, report=not args.no_report)
     s = res.summary
@@ -26,7 +29,7 @@ def cmd_indents(args) -> int:
     for src, msg in res.failed:
         print(f"markcal: error: {src}: {msg}", file=sys.stderr)
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def _finish_render(render, out) -> int:
@@ -120,6 +123,7 @@ def register(sub, render_sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(p)
     p.set_defaults(func=cmd_indents)
 
     for what, fn, hlp in (("afm", cmd_render_afm, "AFM height map of a Vickers indentation array"),

@@ -3,16 +3,18 @@ from __future__ import annotations
 
 import os
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.stages.errors import MarkcalError
 
 
 def cmd_path(args) -> int:
     from markcal.pipeline.progress import progress
-    from markcal.pipeline.registry import get_flow, run_and_write
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, get_flow, run_and_write
 
     say = progress(args.quiet)
     options = {k: getattr(args, k) for k in get_flow("path").descriptor.options if getattr(args, k) is not None}
-    res, paths = run_and_write("path", args.job, args.out, options=options, progress=say)
+    res, paths = run_and_write("path", args.job, args.out, options=options, progress=say, **run_options(args))
     for n in res.notes:
         say(f"note: {n}")
     s = res.summary
@@ -20,7 +22,7 @@ def cmd_path(args) -> int:
         f"shorter than input, {s['length_reduction_vs_raster_pct']:.1f} % than raster), "
         f"job time {s['time_s']:.4g} s")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def cmd_render_path(args) -> int:
@@ -82,6 +84,7 @@ def register(sub, render_sub) -> None:
                    help="iterated local search: kicks per stroke (at least 20,000, at most 200,000 in all; 0: none)")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(p)
     p.set_defaults(func=cmd_path)
 
     r = render_sub.add_parser("path", help="synthetic marking job (random points, paper-like, fiducial grid, text)")

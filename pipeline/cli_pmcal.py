@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
 
@@ -19,10 +20,11 @@ def cmd_pmcal(args) -> int:
         raise MarkcalError(f"unexpected argument(s) after the session folder: {' '.join(args.extra)}")
     if args.depth_um is not None:
         raise MarkcalError("--depth-um belongs to 'markcal pmcal command'")
-    from markcal.pipeline.registry import run_and_write
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, run_and_write
 
     say = progress(args.quiet)
-    res, paths = run_and_write("pmcal", args.session, args.out, progress=say,
+    res, paths = run_and_write("pmcal", args.session, args.out, progress=say, **run_options(args),
                                options={"method": args.method, "seed": args.seed, "no_report": args.no_report})
     for w in res.warnings:
         say(f"warning: {w}")
@@ -33,7 +35,7 @@ def cmd_pmcal(args) -> int:
         msg += f"; against truth: landing RMS {s['landing_rms_um']:.4f} µm, max {s['landing_max_um']:.4f} µm"
     say(msg)
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def _cmd_command(args) -> int:
@@ -132,6 +134,7 @@ def register(sub, render_sub) -> None:
     pc.add_argument("--depth-um", type=float, default=None, help="command: depth along the surface normal, µm")
     pc.add_argument("--no-report", action="store_true", help="skip report.html")
     pc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(pc)
     pc.set_defaults(func=cmd_pmcal)
 
     dr = sub.add_parser("drift", help="online drift compensation from reference-array samples; η per axis")

@@ -3,15 +3,17 @@ from __future__ import annotations
 
 import os
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.pipeline.progress import progress
 
 
 def cmd_selfcal(args) -> int:
-    from markcal.pipeline.registry import run_and_write
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, run_and_write
 
     say = progress(args.quiet)
     res, paths = run_and_write("selfcal", args.session, args.out, options={"no_report": args.no_report},
-                               progress=say)
+                               progress=say, **run_options(args))
     s = res.summary
     msg = (f"stage error RMS Gx {s['gx_rms_um']:.4f} µm, Gy {s['gy_rms_um']:.4f} µm (± {s['predicted_sd_gxy_um']:.4f}); "
            f"O {s['nonorthogonality_urad']:.3f} µrad, R {s['scale_difference_ppm']:.3f} ppm")
@@ -21,7 +23,7 @@ def cmd_selfcal(args) -> int:
             msg += f", E_Gθ {s['error_sd_gtheta_deg']:.2e}°"
     say(msg)
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def cmd_render_selfcal(args) -> int:
@@ -49,6 +51,7 @@ def register(sub, render_sub) -> None:
     sc.add_argument("--out", required=True, help="output folder")
     sc.add_argument("--no-report", action="store_true", help="skip report.html")
     sc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(sc)
     sc.set_defaults(func=cmd_selfcal)
 
     rs = render_sub.add_parser("selfcal", help="self-calibration session of an XYθz stage (paper 001 §4)")

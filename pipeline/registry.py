@@ -13,6 +13,7 @@ from typing import Callable
 
 from markcal.pipeline.flows.descriptor import FlowDescriptor
 from markcal.stages.errors import MarkcalError
+from markcal.stages.verdict import FAIL, evaluate
 
 
 @dataclass(frozen=True)
@@ -65,8 +66,84 @@ def all_flows() -> dict:
     return {name: get_flow(name) for name in REGISTERED}
 
 
+def markcal_version() -> str:
+    """The installed markcal version ("unknown" when run from a source tree that is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("markcal")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+def sha256_of(path) -> str:
+    """SHA-256 of a file, or of a folder's files (``relative path\0digest`` lines, sorted)."""
+    import hashlib
+    import os
+
+    def file_digest(p):
+        h = hashlib.sha256()
+        with open(p, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        return h.hexdigest()
+    if not os.path.isdir(path):
+        return file_digest(path)
+    h = hashlib.sha256()
+    for root, dirs, files in sorted(os.walk(path)):
+        dirs.sort()
+        for f in sorted(files):
+            p = os.path.join(root, f)
+            h.update(f"{os.path.relpath(p, path)}\0{file_digest(p)}\n".encode())
+    return h.hexdigest()
+
+
+def provenance(input_path, spec_path=None, context: dict | None = None) -> dict:
+    """Summary keys that make a result traceable: version, UTC date, command, inputs and their SHA-256,
+    and the user's ``machine``, ``lens``, ``operator``, ``note`` when given."""
+    import datetime
+    import os
+    import sys
+    paths = input_path if isinstance(input_path, (list, tuple)) else [input_path]
+    out = {"markcal_version": markcal_version(),
+           "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+           "command": " ".join(["markcal", *sys.argv[1:]]) if os.path.basename(sys.argv[0]) == "markcal"
+           else " ".join(sys.argv),
+           "input": "; ".join(os.path.abspath(p) for p in paths),
+           "input_sha256": "; ".join(sha256_of(p) for p in paths)}
+    if spec_path:
+        out.update(spec=os.path.abspath(spec_path), spec_sha256=sha256_of(spec_path))
+    for k, v in (context or {}).items():
+        if v:
+            out[k] = str(v)
+    return out
+
+
+def check_tolerance_keys(name: str, summary: dict, tolerances: dict, path=None) -> None:
+    """Refuse a limit on a key the flow does not produce (a typo must not pass as "missing")."""
+    unknown = sorted(k for k in tolerances if k[4:] not in summary)
+    if unknown:
+        numeric = sorted(k for k, v in summary.items() if isinstance(v, (int, float)) and not isinstance(v, bool))
+        raise MarkcalError(f"tolerance on {', '.join(k[4:] for k in unknown)}: the {name} flow produces no such "
+                           f"figure (numeric figures: {', '.join(numeric)})", path)
+
+
+def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict | None = None,
+          context: dict | None = None) -> None:
+    """Add the verdict (the flow's default limits overridden by ``tolerances``) and the provenance to ``summary``.
+
+    ``input_path`` may be a list (several files pooled in one result).
+    """
+    check_tolerance_keys(name, summary, tolerances or {}, input_path if not isinstance(input_path, list) else None)
+    d = get_flow(name).descriptor
+    limits = {**d.tolerances, **(tolerances or {})}
+    v = evaluate(summary, limits)
+    labels = "; ".join(d.figure(k[4:]).caption for k in sorted(limits))
+    summary.update(verdict=v.status, checks=v.checks, check_labels=labels, failed_checks=v.failed,
+                   **provenance(input_path, spec_path, context))
+
+
 def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict | None = None,
-                  progress=None) -> tuple:
+                  progress=None, tolerances: dict | None = None, context: dict | None = None) -> tuple:
     """Run flow ``name`` on one input and write its files, as the single command and the batch do.
 
     Parameters
@@ -81,6 +158,11 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
         Option values; missing ones take the descriptor's defaults; unknown ones are refused.
     progress : callable, optional
         ``progress(msg)`` for progress lines.
+    tolerances : dict, optional
+        ``max_<key>``/``min_<key>`` limits over the descriptor's defaults; the verdict
+        (``verdict``, ``checks``, ``failed_checks``) goes into the summary and the report.
+    context : dict, optional
+        ``machine``, ``lens``, ``operator``, ``note``: recorded in the summary and the report.
 
     Returns
     -------
@@ -98,7 +180,13 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
         raise MarkcalError("no spec file: expected <stem>.toml or the folder's default spec beside the input",
                            input_path)
     result = d.run(input_path, spec_path, opts, progress)
+    judge(name, result.summary, input_path, spec_path, tolerances, context)
     if progress:
         progress("writing tables and report")
     paths = flow.write(result, out_dir, report=not opts.get("no_report", False))
     return result, paths
+
+
+def exit_status(summary: dict) -> int:
+    """A single command's exit status: 4 when it ran but is out of tolerance, else 0."""
+    return 4 if summary.get("verdict") == FAIL else 0

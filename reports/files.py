@@ -10,6 +10,12 @@ import tempfile
 import numpy as np
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 def atomic_write_bytes(path, data: bytes) -> None:
     """Write ``data`` to ``path`` so that a reader never sees a half file."""
     path = os.fspath(path)
@@ -19,6 +25,7 @@ def atomic_write_bytes(path, data: bytes) -> None:
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
+        os.chmod(tmp, 0o666 & ~_umask())          # mkstemp makes 0600: give the file the process umask's mode
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -37,6 +44,9 @@ def start_outputs(out_dir) -> str:
     complete; removing the old one first keeps a half-rewritten folder from
     looking complete.
     """
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        from markcal.stages.errors import MarkcalError
+        raise MarkcalError("--out names an existing file, not a folder", out_dir)
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "summary.json")
     if os.path.exists(path):

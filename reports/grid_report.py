@@ -159,4 +159,4 @@ def grid_report_html(result) -> str:
     parts = [f'<div class="verdict">{verdict}</div>', _summary(result), _comparison(result), _registration(result),
              "<h2>Deviations</h2>", _deviation_figure(result), "<h2>Correction over the lens field</h2>",
              _correction_figure(result), _physical(result), _extrapolated_list(result), data_files_footer(DATA_FILES)]
-    return page("markcal grid report — hand-measured galvo grid", parts, source=s.get("source", result.source))
+    return page("markcal grid report — hand-measured galvo grid", parts, source=s.get("source", result.source), summary=s)

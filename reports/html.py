@@ -13,7 +13,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer"]
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner"]
 
 DPI = 100
 
@@ -34,6 +34,17 @@ figure{margin:10px 0 16px 0}figure img{max-width:100%;height:auto;border:1px sol
 figcaption{font-size:.9em;color:#444;margin-top:4px;max-width:900px}
 footer{margin-top:2.5em;border-top:1px solid #ccc;padding-top:8px;font-size:.9em;color:#444}
 code{background:#f4f4f4;padding:0 3px}
+.banner{display:flex;flex-wrap:wrap;align-items:center;gap:4px 18px;padding:10px 14px;margin:8px 0 6px 0;
+ border-radius:4px;border:2px solid #999}
+.banner .big{font-size:2.1em;font-weight:800;letter-spacing:.04em}
+.banner.pass{border-color:#2e7d32}.banner.pass .big{color:#2e7d32}
+.banner.fail{border-color:#d9342b}.banner.fail .big{color:#d9342b}
+.banner.none .big{color:#666;font-size:1.5em}
+.banner table{margin:0}
+.prov{color:#555;font-size:.85em;margin:2px 0 10px 0;word-break:break-all}
+@page{size:A4;margin:14mm}
+@media print{body{max-width:none;margin:0;padding:0;font-size:10pt}figure,table{break-inside:avoid}
+ h2{break-after:avoid}.filters{display:none}a{color:inherit;text-decoration:none}}
 """
 
 
@@ -111,10 +122,55 @@ def data_files_footer(files) -> str:
     return f"<footer><b>Data files written beside this report</b><ul>{items}</ul></footer>"
 
 
-def page(title: str, body_parts, source: str | None = None) -> str:
-    """A whole self-contained HTML document: title, optional source line, then the parts."""
+def _check_rows(summary: dict) -> list:
+    rows = []
+    failed = summary.get("failed_checks") or ""
+    checks = (summary.get("checks") or "").split("; ")
+    labels = (summary.get("check_labels") or "").split("; ")
+    labels = labels if len(labels) == len(checks) else [""] * len(checks)
+    for c, label in zip(checks, labels):
+        parts = c.split(" ")
+        if len(parts) != 3:
+            continue
+        key, op, lim = parts
+        v = summary.get(key)
+        bad = any(f.split(" ")[0] == key for f in failed.split("; ") if f)
+        val = "–" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.4g}"
+        rows.append([esc(label if label and label != key else key) + (f" <code>{esc(key)}</code>" if label and label != key else ""), val, f"{'≤' if op == '<=' else '≥'} {esc(lim)}",
+                     '<b style="color:#d9342b">out</b>' if bad else "ok"])
+    return rows
+
+
+def verdict_banner(summary: dict) -> str:
+    """PASS / FAIL / NO TOLERANCE in large type with the checks, then the provenance line ("" without a verdict)."""
+    status = summary.get("verdict")
+    if not status:
+        return ""
+    cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
+    rows = _check_rows(summary)
+    checks = table(["figure", "value", "limit", ""], rows) if rows else \
+        "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
+    prov = [f"markcal {esc(summary.get('markcal_version', '?'))}", esc(summary.get("date_utc", ""))]
+    for k in ("machine", "lens", "operator", "note"):
+        if summary.get(k):
+            prov.append(f"{k}: {esc(summary[k])}")
+    if summary.get("input"):
+        prov.append(f"input {esc(summary['input'])} (SHA-256 {esc(str(summary.get('input_sha256', ''))[:16])}…)")
+    if summary.get("spec"):
+        prov.append(f"spec {esc(summary['spec'])} (SHA-256 {esc(str(summary.get('spec_sha256', ''))[:16])}…)")
+    if summary.get("command"):
+        prov.append(f"command <code>{esc(summary['command'])}</code>")
+    return (f'<div class="banner {cls}" id="verdict"><span class="big">{esc(status.upper())}</span>{checks}</div>'
+            f'<div class="prov">{" · ".join(prov)}</div>')
+
+
+def page(title: str, body_parts, source: str | None = None, summary: dict | None = None) -> str:
+    """A whole self-contained HTML document: title, the verdict banner (when ``summary`` has one),
+    optional source line, then the parts."""
     head = ["<!DOCTYPE html>", '<html lang="en"><head><meta charset="utf-8">',
             f"<title>{esc(title)}</title><style>{CSS}</style></head><body>", f"<h1>{esc(title)}</h1>"]
+    if summary:
+        head.append(verdict_banner(summary))
     if source is not None:
         head.append(f'<div class="src">source: {esc(source)}</div>')
     return "\n".join(head + list(body_parts) + ["</body></html>"])

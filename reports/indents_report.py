@@ -220,4 +220,4 @@ def indents_report_html(res) -> str:
     parts.append("<h2>Every imprint</h2>")
     parts.append(_gallery(res.files))
     parts.append(data_files_footer(DATA_FILES))
-    return page("markcal indents report", parts, source=s["source"])
+    return page("markcal indents report", parts, source=s["source"], summary=s)

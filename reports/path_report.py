@@ -159,4 +159,4 @@ def path_report_html(res) -> str:
              for k, name in enumerate(ordered_names(res))]
     files.append(("summary.json", "the values of the tables above"))
     parts.append(data_files_footer(files))
-    return page("markcal path: marking order", parts, source=res.source)
+    return page("markcal path: marking order", parts, source=res.source, summary=res.summary)

@@ -112,4 +112,4 @@ def pmcal_report_html(result: PmcalResult) -> str:
     parts.append("<h2>Residuals</h2>")
     parts.append(_residuals(result))
     parts.append(data_files_footer(DATA_FILES))
-    return page("markcal pmcal: precision-marking machine calibration", parts, source=result.source)
+    return page("markcal pmcal: precision-marking machine calibration", parts, source=result.source, summary=result.summary)

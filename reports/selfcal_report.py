@@ -179,4 +179,4 @@ def selfcal_report_html(result) -> str:
                  "equations as in paper eq. 27. Equations are weighted by the noise level of their group, "
                  "estimated from the residuals.</p>")
     parts.append(data_files_footer(DATA_FILES))
-    return page("markcal selfcal report — XYθz stage self-calibration", parts, source=result.source)
+    return page("markcal selfcal report — XYθz stage self-calibration", parts, source=result.source, summary=result.summary)

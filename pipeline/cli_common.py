@@ -1,0 +1,38 @@
+"""What every flow command shares on the command line: tolerances, traceability, help layout, exit status."""
+from __future__ import annotations
+
+import argparse
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows each option's default (except None / False, whose meaning the help text states)."""
+
+    def _get_help_string(self, action):
+        if action.default in (None, False) or action.default is argparse.SUPPRESS:
+            return action.help
+        return super()._get_help_string(action)
+
+
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose help shows the defaults."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def add_run_options(p) -> None:
+    """``--tol KEY<=VALUE`` (repeatable) and the traceability fields of a flow command."""
+    p.add_argument("--tol", action="append", default=[], metavar="KEY<=VALUE",
+                   help="pass/fail limit on a summary figure, e.g. rms_mm<=0.05 (repeatable; overrides the "
+                        "flow's default limits; exit status 4 when out of tolerance)")
+    for k in ("machine", "lens", "operator", "note"):
+        p.add_argument(f"--{k}", metavar="TEXT", help=f"{k} recorded in summary.json and the report")
+
+
+def run_options(args) -> dict:
+    """``tolerances`` and ``context`` keyword arguments of ``run_and_write`` from parsed arguments."""
+    from markcal.stages.verdict import parse_tolerance
+    tolerances = dict(parse_tolerance(t) for t in getattr(args, "tol", []) or [])
+    context = {k: getattr(args, k, None) for k in ("machine", "lens", "operator", "note")}
+    return {"tolerances": tolerances, "context": context}
