@@ -9,6 +9,7 @@ correction on a grid over the whole lens field.
 """
 from __future__ import annotations
 
+import re
 import time
 from dataclasses import dataclass
 
@@ -205,10 +206,10 @@ def _claims(path) -> bool:
             first = next((s for s in (line.split() for line in fh) if s and not s[0].startswith("#")), [])
     except OSError:
         return False
-    if len(first) != 6:
+    if len(first) != 6 or not all(re.fullmatch(r"[0-9A-Fa-f]{4}", v) for v in first[4:]):
         return False
     try:
-        [float(v) for v in first[:4]] + [int(v, 16) for v in first[4:]]
+        [float(v) for v in first[:2]] + [int(v) for v in first[2:4]]    # measured x, y (mm); i, j (whole)
     except ValueError:
         return False
     return True
