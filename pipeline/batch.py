@@ -71,6 +71,9 @@ def discover(input_dir, out_dir, config: dict) -> Discovery:
     out_abs = os.path.abspath(out_dir)
     if not os.path.isdir(input_dir):
         raise MarkcalError("input folder does not exist", input_dir)
+    if os.path.realpath(out_abs) == os.path.realpath(input_dir):
+        raise MarkcalError("--out is the input folder: outputs would land among the inputs; choose another folder",
+                           out_dir)
     jobs, ignored = [], []
     flows = [f.descriptor for f in all_flows().values()]
     folder_flows = [d for d in flows if d.folder]
@@ -90,6 +93,9 @@ def discover(input_dir, out_dir, config: dict) -> Discovery:
         dirs[:] = keep
         for f in sorted(files):
             full = os.path.join(root, f)
+            if not os.path.isfile(full):            # FIFO, socket, device, dangling link: never read
+                ignored.append(os.path.relpath(full, input_dir) + " (not a regular file)")
+                continue
             entry = next((e for e in file_flows if e.claims(full)), None)
             if entry is not None:
                 jobs.append(_job(entry, full, input_dir, out_abs, config))
@@ -112,14 +118,22 @@ def _job(entry, path, input_dir, out_abs, config) -> dict:
 
 
 def _unique_names(jobs, out_abs) -> None:
+    """Give every job its own output folder: ``plate7.ply`` and ``plate7.npy`` -> ``plate7_ply``,
+    ``plate7_npy``; a name still taken after that (by another input's name) gets ``_2``, ``_3``, ..."""
     seen = {}
     for j in jobs:
         seen.setdefault(j["name"], []).append(j)
     for name, js in seen.items():
         if len(js) > 1 or name in INDEX_FILES:
-            for j in js:            # plate7.ply and plate7.npy -> plate7_ply, plate7_npy
+            for j in js:
                 j["name"] = j["rel"].replace(".", "_")
+    taken = set()
     for j in jobs:
+        base, k = j["name"], 1
+        while j["name"].lower() in taken:       # case-insensitive: file systems that fold case
+            k += 1
+            j["name"] = f"{base}_{k}"
+        taken.add(j["name"].lower())
         j["out_dir"] = os.path.join(out_abs, *j["name"].split("/"))
 
 

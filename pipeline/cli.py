@@ -52,6 +52,9 @@ def main(argv=None) -> int:
         where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
         print(f"markcal: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return 1
+    except MemoryError:
+        print("markcal: error: out of memory: the input is larger than this machine can hold", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from markcal.pipeline.flows.descriptor import FlowDescriptor
+from markcal.reports.files import check_out_dir
 from markcal.stages.errors import MarkcalError
 from markcal.stages.verdict import FAIL, evaluate
 
@@ -179,6 +180,7 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     if d.needs_spec and not spec_path:
         raise MarkcalError("no spec file: expected <stem>.toml or the folder's default spec beside the input",
                            input_path)
+    check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])
     result = d.run(input_path, spec_path, opts, progress)
     judge(name, result.summary, input_path, spec_path, tolerances, context)
     if progress:

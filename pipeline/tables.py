@@ -46,6 +46,8 @@ def read_table(path, columns, int_columns=(), key=None) -> dict:
         number, or a repeated key; the message names the line.
     """
     path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise MarkcalError("not a regular file (a folder, FIFO or device)", path)
     try:
         with open(path, newline="", encoding="utf-8-sig") as fh:
             rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]

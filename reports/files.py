@@ -37,20 +37,77 @@ def atomic_write_text(path, text: str) -> None:
     atomic_write_bytes(path, text.encode("utf-8"))
 
 
+LOCK_NAME = ".markcal.lock"
+
+
+def check_out_dir(out_dir, inputs=()) -> None:
+    """Refuse an output folder that is an existing file, an input itself, or a folder holding an input."""
+    from markcal.stages.errors import MarkcalError
+    out = os.path.realpath(out_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise MarkcalError("--out names an existing file, not a folder", out_dir)
+    for p in inputs:
+        rp = os.path.realpath(p)
+        if rp == out or rp.startswith(out.rstrip(os.sep) + os.sep):
+            raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
+                               "choose another folder", out_dir)
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _take_lock(out_dir) -> str:
+    """Create ``out_dir``'s lock file; refuse while another live process holds it."""
+    from markcal.stages.errors import MarkcalError
+    path = os.path.join(out_dir, LOCK_NAME)
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            try:
+                pid = int(open(path).read().strip() or 0)
+            except (OSError, ValueError):
+                pid = 0
+            if pid and pid != os.getpid() and _pid_alive(pid):
+                raise MarkcalError(f"another markcal run (process {pid}) is writing into this folder; wait for it "
+                                   f"or remove {LOCK_NAME} if there is none", out_dir) from None
+            os.unlink(path)                 # stale (its process is gone) or our own
+            continue
+        with os.fdopen(fd, "w") as fh:
+            fh.write(str(os.getpid()))
+        return path
+    raise MarkcalError("cannot take the output folder's lock", out_dir)
+
+
 def start_outputs(out_dir) -> str:
-    """Create ``out_dir`` and remove an old ``summary.json``; return its path.
+    """Create ``out_dir``, remove what an earlier run wrote there; return the summary.json path.
 
     Every flow writes ``summary.json`` last, so a folder whose summary exists is
-    complete; removing the old one first keeps a half-rewritten folder from
-    looking complete.
+    complete: it goes first, with every file the earlier run listed in it
+    (``outputs``), so a half-rewritten folder never looks complete and never
+    mixes files of two runs.
     """
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        from markcal.stages.errors import MarkcalError
-        raise MarkcalError("--out names an existing file, not a folder", out_dir)
+    check_out_dir(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "summary.json")
     if os.path.exists(path):
+        try:
+            with open(path, encoding="utf-8") as fh:
+                old = json.load(fh).get("outputs", [])
+        except (OSError, ValueError, AttributeError):
+            old = []
         os.unlink(path)
+        for name in old if isinstance(old, list) else []:
+            p = os.path.join(out_dir, str(name))
+            if os.path.basename(str(name)) == str(name) and name != "summary.json" and os.path.isfile(p):
+                os.unlink(p)
     return path
 
 
@@ -64,6 +121,7 @@ class OutputFolder:
     def __init__(self, out_dir):
         self.out_dir = os.fspath(out_dir)
         self.summary_path = start_outputs(self.out_dir)
+        self.lock_path = _take_lock(self.out_dir)
         self.paths = {}
 
     def _path(self, name: str) -> str:
@@ -87,9 +145,12 @@ class OutputFolder:
         atomic_write_bytes(self._path(name), data)
 
     def finish(self, summary: dict) -> dict:
-        """Write ``summary.json`` (last); return output name -> path."""
+        """Write ``summary.json`` (last, listing the files written as ``outputs``); return output name -> path."""
+        summary["outputs"] = sorted(self.paths)
         write_json(self.summary_path, summary)
         self.paths["summary.json"] = self.summary_path
+        if os.path.exists(self.lock_path):
+            os.unlink(self.lock_path)
         return dict(self.paths)
 
 

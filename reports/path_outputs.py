@@ -9,9 +9,8 @@ import os
 
 import numpy as np
 
-from markcal.stages.errors import MarkcalError
 
-from markcal.reports.files import OutputFolder
+from markcal.reports.files import OutputFolder, check_out_dir
 from markcal.reports.path_report import ordered_names, path_report_html
 from markcal.stages.job_formats import job_writer
 
@@ -81,10 +80,7 @@ def write_path_outputs(result, out_dir, report: bool = True) -> dict:
         Output name -> path.
     """
     names = ordered_names(result)
-    src = os.path.abspath(result.source)
-    for name in names + ["report.html", "summary.json"]:
-        if os.path.abspath(os.path.join(out_dir, name)) == src:
-            raise MarkcalError(f"--out would overwrite the input job ({name})", result.source)
+    check_out_dir(out_dir, [result.source])
     out = OutputFolder(out_dir)
     if result.inp.fmt == "csv":
         out.text("ordered.csv", ordered_csv_text(result))

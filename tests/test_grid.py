@@ -89,7 +89,7 @@ def test_three_layouts_read_the_same_commands(tmp_path):
 @pytest.mark.parametrize("seed,mirror", [(1, False), (2, True)])
 def test_grid_to_cor_on_the_true_machine(tmp_path, seed, mirror):
     """9 x 9 over a 110 mm lens, 0.02 mm noise: the exported .cor corrects the true machine to the goals."""
-    from markcal.reports.export import decode_cor
+    from markcal.stages.table_formats import decode_cor
     extra = ["--seed", str(seed)] + (["--mirror"] if mirror else [])
     src, truth = _render_cli(tmp_path, *extra)
     out = tmp_path / "out"
