@@ -27,6 +27,12 @@ The open choices:
   ``"2pct"`` (2 % of the stroke).
 * ``origin`` -- settling time measured from the ``"end"`` of the reference
   move or from its ``"start"``.
+* ``r0_unit`` -- the unit of the tracking differentiator's speed factor r0 =
+  1,000,000: ``"um"`` (µm/s^2, i.e. 1 m/s^2: the TD reshapes the 10 m/s^2
+  S-curve) or ``"mm"`` (1000 m/s^2: the TD passes the S-curve through).
+  Only the composite controller uses it.
+* ``cca_origin`` -- the composite controller's settling time counted from the
+  end of its ``"own"`` reference (the TD output) or of the planned move ``"xd"``.
 * ``sine_window`` -- MAE/STD over the ``"last"`` period of three (steady state)
   or over the ``"whole"`` record of ``sine_periods`` periods from rest.
 """
@@ -44,7 +50,7 @@ from markcal.stages.servo_profile import s_curve, sinusoid
 from markcal.stages.servo_sim import BASELINE, simulate, tracking_metrics
 
 __all__ = ["Reading", "DEFAULT_READING", "NAMED_READINGS", "reading_params", "settle_band_um",
-           "settling_from", "baseline_rows", "score_rows", "PAPER_T1_BASE", "PAPER_T2_BASE", "UNIT_MM"]
+           "settling_from", "reference_end_s", "baseline_rows", "score_rows", "PAPER_T1_BASE", "PAPER_T2_BASE", "UNIT_MM"]
 
 #: length units (mm per unit)
 UNIT_MM = {"mm": 1.0, "um": 1e-3}
@@ -70,12 +76,15 @@ class Reading:
     origin: str = "end"
     sine_window: str = "last"
     sine_periods: float = 3.0
+    r0_unit: str = "um"
+    cca_origin: str = "own"
 
     def check(self) -> None:
         """Refuse an unknown choice, naming it."""
         allowed = {"plant": ("a0", "no_a0"), "plant_unit": tuple(UNIT_MM), "ctrl_unit": tuple(UNIT_MM),
                    "ff_unit": tuple(UNIT_MM), "integral": ("inv", "gain"), "band": BANDS,
-                   "origin": ("end", "start"), "sine_window": ("last", "whole")}
+                   "origin": ("end", "start"), "sine_window": ("last", "whole"), "r0_unit": tuple(UNIT_MM),
+                   "cca_origin": ("own", "xd")}
         for k, ok in allowed.items():
             if getattr(self, k) not in ok:
                 raise MarkcalError(f"reading {k} = {getattr(self, k)!r} unknown (one of {', '.join(ok)})")
@@ -121,20 +130,27 @@ def reading_params(reading: Reading, gains: PIDGains = PIDGains(),
     ``gains`` and ``plant`` hold the paper's numbers as printed; they are
     converted: plant gain times the plant unit, PID gains divided by the
     controller unit, Kf divided by the feed-forward unit, the integral taken
-    as printed (``1/Ki``) or as a gain, ``phi`` and ``r0`` in the controller unit.
+    as printed (``1/Ki``) or as a gain, ``phi`` in the controller unit, ``r0``
+    in ``r0_unit``.
     """
     reading.check()
     up, uc, uf = (UNIT_MM[u] for u in (reading.plant_unit, reading.ctrl_unit, reading.ff_unit))
     p = replace(plant, b0=plant.b0 * reading.b0_scale * up, a0=plant.a0 if reading.plant == "a0" else 0.0)
     ki_inv = (1.0 / gains.ki if reading.integral == "inv" else gains.ki) / uc
     g = replace(gains, kf=gains.kf / uf, kp=gains.kp / uc, kd=gains.kd / uc,
-                ki=(1.0 / ki_inv) if ki_inv > 0 else math.inf, phi_mm=gains.phi_mm * uc, r0=gains.r0 * uc)
+                ki=(1.0 / ki_inv) if ki_inv > 0 else math.inf, phi_mm=gains.phi_mm * uc, r0=gains.r0 * UNIT_MM[reading.r0_unit])
     return p, g
 
 
 def settle_band_um(band: str, stroke_mm: float) -> float:
     """Half width of the settling band, µm."""
     return 0.02 * abs(stroke_mm) * 1e3 if band == "2pct" else float(band[:-2])
+
+
+def reference_end_s(t_s, ref_mm, tol_mm: float = 1e-7) -> float:
+    """Time (s) from which ``ref_mm`` stays within ``tol_mm`` of its final value."""
+    off = np.flatnonzero(np.abs(np.asarray(ref_mm) - ref_mm[-1]) > tol_mm)
+    return float(t_s[0]) if off.size == 0 else float(t_s[min(off[-1] + 1, len(t_s) - 1)])
 
 
 def settling_from(t_s, pos_mm, target_mm, t0_s, band_um) -> float:
