@@ -13,6 +13,7 @@ import numpy as np
 from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_control import PIDGains, RepetitiveParams, StabilityCheck, check_rc_stability
 from markcal.stages.servo_plant import PlantParams, discretise
+from markcal.stages.servo_reading import DEFAULT_READING, Reading, reading_params, settle_band_um
 from markcal.stages.servo_sim import SimResult, step_metrics, tracking_metrics
 
 
@@ -40,7 +41,10 @@ class ServoConfig:
     """Everything the simulation needs; defaults are the paper's sec. 5 setup.
 
     ``rc_m = None`` means "auto": the lead with the largest eq. 24 margin.
-    Lengths mm, speeds mm/s, time s.
+    ``plant`` and ``gains`` hold the paper's numbers as printed; ``reading``
+    says how they are read (units, forms; :mod:`markcal.stages.servo_reading`)
+    and :func:`sim_model` gives them in markcal's units. ``settle_band_um =
+    None`` takes the reading's band. Lengths mm, speeds mm/s, time s.
     """
 
     plant: PlantParams = PlantParams()
@@ -55,18 +59,30 @@ class ServoConfig:
     dwell_s: float = 0.3
     amplitudes_mm: tuple = (5.0, 10.0)
     frequencies_hz: tuple = (0.1, 0.2, 0.5, 1.0, 2.0)
-    periods: float = 3.0
-    settle_band_um: float = 1.0
+    periods: float = DEFAULT_READING.sine_periods
+    settle_band_um: float | None = None
     u_max_v: float = math.inf
     friction_v: float = 0.0
+    reading: Reading = DEFAULT_READING
+
+
+def sim_model(cfg: ServoConfig) -> tuple[PlantParams, PIDGains]:
+    """Plant and gains of ``cfg`` in markcal's units (mm, mm/s, V) under its reading."""
+    return reading_params(cfg.reading, cfg.gains, cfg.plant)
+
+
+def band_um(cfg: ServoConfig, stroke_mm: float) -> float:
+    """The settling band half width for a move of ``stroke_mm``, µm."""
+    return cfg.settle_band_um if cfg.settle_band_um is not None else settle_band_um(cfg.reading.band, stroke_mm)
 
 
 def validate_config(cfg: ServoConfig) -> None:
     """Refuse non-physical or unstable settings (with the reason)."""
     cfg.plant.check()
     cfg.gains.check()
+    cfg.reading.check()
     RepetitiveParams(cfg.rc_tau, cfg.rc_kr, 0 if cfg.rc_m is None else cfg.rc_m).check()
-    if not (cfg.settle_band_um > 0):
+    if cfg.settle_band_um is not None and not (cfg.settle_band_um > 0):
         raise MarkcalError(f"settle_band_um must be positive (got {cfg.settle_band_um})")
     if not (cfg.u_max_v > 0):
         raise MarkcalError(f"u_max_v must be positive (got {cfg.u_max_v})")
@@ -82,20 +98,21 @@ def choose_rc(cfg: ServoConfig) -> tuple[RepetitiveParams, StabilityCheck, Stabi
     Raises :class:`MarkcalError` when the PID loop is unstable or when an
     explicitly configured ``m`` violates eq. 24.
     """
-    dp = discretise(cfg.plant)
-    paper = check_rc_stability(dp, cfg.gains, RepetitiveParams(cfg.rc_tau, cfg.rc_kr, PAPER_RC_M))
+    plant, gains = sim_model(cfg)
+    dp = discretise(plant)
+    paper = check_rc_stability(dp, gains, RepetitiveParams(cfg.rc_tau, cfg.rc_kr, PAPER_RC_M))
     if cfg.rc_m is None:
         if paper.pid_pole_radius >= 1:
             raise MarkcalError(f"unstable parameter set: {paper.reason}")
         best = None
         for m in AUTO_M_RANGE:
-            c = check_rc_stability(dp, cfg.gains, RepetitiveParams(cfg.rc_tau, cfg.rc_kr, m), n_freq=1500)
+            c = check_rc_stability(dp, gains, RepetitiveParams(cfg.rc_tau, cfg.rc_kr, m), n_freq=1500)
             if best is None or c.margin > best[1].margin:
                 best = (m, c)
         rc = RepetitiveParams(cfg.rc_tau, cfg.rc_kr, best[0])
     else:
         rc = RepetitiveParams(cfg.rc_tau, cfg.rc_kr, int(cfg.rc_m))
-    check = check_rc_stability(dp, cfg.gains, rc)
+    check = check_rc_stability(dp, gains, rc)
     if not check.ok:
         raise MarkcalError(f"unstable parameter set: {check.reason}")
     return rc, check, paper

@@ -59,7 +59,7 @@ def s_curve(stroke_mm: float, v_mm_s: float = 100.0, a_mm_s2: float = 10_000.0,
         Time simulated after the reference has arrived, s.
     """
     for name, val in (("velocity", v_mm_s), ("acceleration", a_mm_s2), ("jerk", jerk_mm_s3)):
-        if not (np.isfinite(val) and val > 0):
+        if not ((np.isfinite(val) or name == "jerk") and val > 0):
             raise MarkcalError(f"S-curve {name} must be positive (got {val})")
     if not (np.isfinite(stroke_mm) and stroke_mm != 0):
         raise MarkcalError(f"S-curve stroke must be non-zero (got {stroke_mm})")

@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.pipeline.tables import check_increasing, read_table
 from markcal.stages.errors import MarkcalError
-from markcal.stages.servo_cases import (PAPER_RC_M, Run, ServoConfig, choose_rc, find_run, trace_run,
-                                        validate_config)
+from markcal.stages.servo_cases import (PAPER_RC_M, Run, ServoConfig, band_um, choose_rc, find_run, sim_model,
+                                        trace_run, validate_config)
+from markcal.stages.servo_control import tracking_differentiator
+from markcal.stages.servo_reading import NAMED_READINGS, baseline_rows, reference_end_s, score_rows
 from markcal.stages.servo_control import RepetitiveParams, StabilityCheck
 from markcal.stages.servo_plant import discretise
 from markcal.stages.servo_profile import s_curve, sinusoid
@@ -42,49 +44,73 @@ class ServoResult:
     stability: StabilityCheck | None
     stability_paper_m: StabilityCheck | None
     summary: dict
+    readings: tuple = ()          # (name, Reading, baseline rows, score) of the named readings
 
 
-def _step_run(cfg, dp, stroke, ctrl):
-    p = s_curve(stroke, cfg.velocity_mm_s, cfg.acceleration_mm_s2, cfg.jerk_mm_s3, cfg.plant.ts_s, cfg.dwell_s)
-    r = simulate(dp, cfg.gains, p, ctrl, u_max_v=cfg.u_max_v, friction_v=cfg.friction_v)
-    m = step_metrics(p.t_s, r.ref_mm, r.pos_mm, p.t_end_s, cfg.settle_band_um)
+def _step_run(cfg, dp, gains, stroke, ctrl):
+    ts = dp.params.ts_s
+    p = s_curve(stroke, cfg.velocity_mm_s, cfg.acceleration_mm_s2, cfg.jerk_mm_s3, ts, cfg.dwell_s)
+    r = simulate(dp, gains, p, ctrl, u_max_v=cfg.u_max_v, friction_v=cfg.friction_v)
+    t_end = p.t_end_s
+    if ctrl.tracking_differentiator and cfg.reading.cca_origin == "own":
+        # settling counted from the end of the reference the loop follows: the TD's output
+        t_end = max(t_end, reference_end_s(p.t_s, tracking_differentiator(p.x_mm, gains.r0, ts)[0]))
+    m = step_metrics(p.t_s, r.ref_mm, r.pos_mm, t_end, band_um(cfg, stroke))
     return Run("step", ctrl.name, float(abs(stroke)), float("nan"), m.settling_time_s, m.overshoot_um,
-               m.mae_um, m.std_um, r, slice(None), p.t_end_s)
+               m.mae_um, m.std_um, r, slice(None), t_end)
 
 
-def _sine_run(cfg, dp, amp, freq, ctrl, rc):
-    p = sinusoid(amp, freq, cfg.periods, cfg.plant.ts_s)
-    r = simulate(dp, cfg.gains, p, ctrl, rc=rc, period_s=1.0 / freq, u_max_v=cfg.u_max_v,
+def _sine_run(cfg, dp, gains, amp, freq, ctrl, rc):
+    ts = dp.params.ts_s
+    p = sinusoid(amp, freq, cfg.periods, ts)
+    r = simulate(dp, gains, p, ctrl, rc=rc, period_s=1.0 / freq, u_max_v=cfg.u_max_v,
                  friction_v=cfg.friction_v)
-    n1 = int(round(1.0 / freq / cfg.plant.ts_s))
-    win = slice(len(p.t_s) - n1, len(p.t_s))          # the last whole period
+    n1 = int(round(1.0 / freq / ts))
+    # the reading's window: the whole record from rest, or the last whole period
+    win = slice(None) if cfg.reading.sine_window == "whole" else slice(len(p.t_s) - n1, len(p.t_s))
     mae, std = tracking_metrics(r.err_mm[win])
     return Run("sine", ctrl.name, float(amp), float(freq), float("nan"), float("nan"), mae, std, r, win)
 
 
-def run_servo(cfg: ServoConfig | None = None, source: str = "paper defaults", progress=None) -> ServoResult:
-    """Simulate every move and sinusoid with the baseline and the composite controller."""
+def run_servo(cfg: ServoConfig | None = None, source: str = "paper defaults", progress=None,
+              compare_readings: bool = True) -> ServoResult:
+    """Simulate every move and sinusoid with the baseline and the composite controller.
+
+    With ``compare_readings`` the named readings' baseline rows are simulated
+    too and scored against Tables 1-2 (for the report's side-by-side table).
+    """
     say = progress or (lambda msg: None)
     cfg = cfg or ServoConfig()
     validate_config(cfg)
     t0 = time.perf_counter()
     rc, check, paper = choose_rc(cfg)
     say(f"eq. 24: {check.reason}; repetitive lead m = {rc.m}")
-    dp = discretise(cfg.plant)
+    plant, gains = sim_model(cfg)
+    dp = discretise(plant)
     runs = []
     for stroke in cfg.strokes_mm:
         for ctrl in (BASELINE, CCA_STEP):
-            runs.append(_step_run(cfg, dp, stroke, ctrl))
+            runs.append(_step_run(cfg, dp, gains, stroke, ctrl))
     say(f"{len(cfg.strokes_mm)} moves simulated")
     for amp in cfg.amplitudes_mm:
         for freq in cfg.frequencies_hz:
             for ctrl in (BASELINE, CCA_TRACK):
-                runs.append(_sine_run(cfg, dp, amp, freq, ctrl, rc))
+                runs.append(_sine_run(cfg, dp, gains, amp, freq, ctrl, rc))
     say(f"{len(cfg.amplitudes_mm) * len(cfg.frequencies_hz)} sinusoids simulated")
     summary = _sim_summary(cfg, runs, rc, check, paper)
+    readings = []
+    if compare_readings:
+        for name, rd in NAMED_READINGS.items():
+            rows = baseline_rows(rd, gains=cfg.gains, plant=cfg.plant)
+            readings.append((name, rd, rows, score_rows(rows)))
+        say(f"{len(readings)} readings scored against Tables 1-2")
+        own = next((r for r in readings if r[1] == cfg.reading), None)
+        if own:
+            summary.update({"reading_score": own[3]["score"], "reading_t1_within": own[3]["t1_within"],
+                            "reading_t2_within": own[3]["t2_within"]})
     summary["runtime_s"] = time.perf_counter() - t0
     summary["source"] = source
-    return ServoResult(source, "simulation", cfg, runs, rc, check, paper, summary)
+    return ServoResult(source, "simulation", cfg, runs, rc, check, paper, summary, tuple(readings))
 
 
 def _sim_summary(cfg, runs, rc, check, paper) -> dict:
@@ -97,7 +123,8 @@ def _sim_summary(cfg, runs, rc, check, paper) -> dict:
          "eq24_worst_freq_hz": check.worst_freq_hz, "pid_pole_radius": check.pid_pole_radius,
          "eq24_paper_m": PAPER_RC_M, "eq24_paper_m_ok": paper.ok, "eq24_paper_m_max_gain": paper.max_gain,
          "eq24_paper_m_worst_freq_hz": paper.worst_freq_hz,
-         "settle_band_um": cfg.settle_band_um, "n_runs": len(runs)}
+         "settle_band_um": band_um(cfg, 10.0), "n_runs": len(runs),
+         **{f"reading_{k}": v for k, v in asdict(cfg.reading).items()}}
     ref_stroke = 10.0 if any(np.isclose(x, 10.0) for x in cfg.strokes_mm) else cfg.strokes_mm[0]
     b, c = find_run(runs, "step", "baseline", ref_stroke), find_run(runs, "step", "cca", ref_stroke)
     s["step_stroke_mm"] = ref_stroke
