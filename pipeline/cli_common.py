@@ -36,3 +36,37 @@ def run_options(args) -> dict:
     tolerances = dict(parse_tolerance(t) for t in getattr(args, "tol", []) or [])
     context = {k: getattr(args, k, None) for k in ("machine", "lens", "operator", "note")}
     return {"tolerances": tolerances, "context": context}
+
+
+class LazyChoices:
+    """``choices`` for an option whose allowed values live in a heavy module: loaded on first use.
+
+    ``markcal --help`` and the other commands then never import that module.
+    """
+
+    def __init__(self, load):
+        self._load, self._values = load, None
+
+    def _get(self) -> list:
+        if self._values is None:
+            self._values = list(self._load())
+        return self._values
+
+    def __contains__(self, value) -> bool:
+        return value in self._get()
+
+    def __iter__(self):
+        return iter(self._get())
+
+    def __len__(self) -> int:
+        return len(self._get())
+
+
+def _attr(module: str, name: str):
+    import importlib
+    return getattr(importlib.import_module(module), name)
+
+
+def choices_from(module: str, name: str, extra=()) -> LazyChoices:
+    """Lazy choices: ``module.name`` (an iterable of names) followed by ``extra``."""
+    return LazyChoices(lambda: [*_attr(module, name), *extra])

@@ -82,7 +82,7 @@ def _table_options(p):
                    help="cor: the controller drives nominal - entry (subtract, default) or nominal + entry")
     p.add_argument("--ctb-content", choices=["absolute", "offset"], default="absolute",
                    help="ctb: entries are corrected positions (default) or offsets, offset binary")
-    p.add_argument("--sign", type=float, default=1.0, help="a3200: the table holds -sign x measured error (default 1)")
+    p.add_argument("--sign", type=float, default=1.0, help="a3200: the table holds -sign x measured error")
 
 
 def register(sub, render_sub) -> None:

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import add_run_options, choices_from
 from markcal.stages.errors import MarkcalError
 
 
@@ -51,13 +51,12 @@ def cmd_render_grid_job(args) -> int:
 
 def register(sub, render_sub) -> None:
     """Add ``grid`` to the top-level commands and ``grid``, ``grid-job`` to ``render``."""
-    from markcal.stages.galvo_fit import KINDS
     g = sub.add_parser("grid", help="hand-measured galvo grid -> physical model, correction over the lens field, report")
     g.add_argument("measured", help="measured grid: CSV (x_cmd_mm,y_cmd_mm,x_meas_mm,y_meas_mm or x_cmd_units,...) "
                                     "or a BJJCZ whitespace file")
     g.add_argument("--out", required=True, help="output folder")
-    g.add_argument("--model", choices=[*KINDS, "auto"], default=None,
-                   help="correction model (auto: lowest k-fold CV error)")
+    g.add_argument("--model", choices=choices_from("markcal.stages.galvo_fit", "KINDS", extra=("auto",)), metavar="MODEL", default=None,
+                   help="correction model: %(choices)s (auto: lowest k-fold CV error; default physical+rbf)")
     g.add_argument("--units-per-mm", type=float, default=None, help="controller units per mm (commands in units)")
     g.add_argument("--centre-units", type=float, default=None, help="controller units at the field centre")
     g.add_argument("--lens-mm", type=float, default=None,

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import LazyChoices, add_run_options
 from markcal.stages.errors import MarkcalError
 
 
@@ -53,17 +53,20 @@ def cmd_render_path(args) -> int:
     return 0
 
 
+def _method_names() -> list:
+    from markcal.pipeline.flows.path import ALIASES, METHODS
+    return list(METHODS) + sorted(ALIASES)
+
+
 def register(sub, render_sub) -> None:
     """Add ``path`` to the top-level sub-commands and ``path`` to ``render``."""
-    from markcal.pipeline.flows.path import ALIASES, METHODS
-
     p = sub.add_parser("path", help="marking job -> marking order with short jumps (GA, local search), report",
                        description="Defaults of the options are the path flow's (see the README, 'markcal path').")
     p.add_argument("job", help="job file: .json strokes (point / polyline / contour, mm), .csv points (x_mm,y_mm), "
                                ".dxf, .svg, .plt/.hpgl or G-code (.gcode, .nc, .ngc)")
     p.add_argument("--out", required=True, help="output folder")
-    p.add_argument("--method", default=None, choices=list(METHODS) + sorted(ALIASES),
-                   help="order written out: auto (default) = local search from nearest neighbour (ls); "
+    p.add_argument("--method", default=None, choices=LazyChoices(_method_names), metavar="METHOD",
+                   help="order written out (%(choices)s): auto (default) = local search from nearest neighbour (ls); "
                         "the paper GA (ga), GA then local search (ga+ls, alias ga+2opt), or a baseline")
     p.add_argument("--tolerance-mm", type=float, default=None,
                    help="chordal tolerance for flattening arcs, circles, ellipses, splines and Béziers (mm)")

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import add_run_options, choices_from
 from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
 
@@ -116,8 +116,6 @@ def _write_om_marks(r, out, say) -> None:
 
 def register(sub, render_sub) -> None:
     """Add ``pmcal`` and ``drift`` to ``sub`` and ``pmcal`` to ``render_sub``."""
-    from markcal.pipeline.flows.pmcal import METHODS
-    from markcal.stages.drift import METHODS as DRIFT_METHODS
 
     import argparse
 
@@ -129,8 +127,9 @@ def register(sub, render_sub) -> None:
                     "or the word 'command'")
     pc.add_argument("extra", nargs="*", help="with 'command': CALIBRATION.json TARGETS.csv")
     pc.add_argument("--out", required=True, help="output folder (calibration) or COMMANDS.csv (command)")
-    pc.add_argument("--method", choices=METHODS, default="ga+lsq", help="calibration written (default ga+lsq)")
-    pc.add_argument("--seed", type=int, default=0, help="GA seed (default 0)")
+    pc.add_argument("--method", choices=choices_from("markcal.pipeline.flows.pmcal", "METHODS"), default="ga+lsq",
+                    metavar="METHOD", help="calibration written: %(choices)s")
+    pc.add_argument("--seed", type=int, default=0, help="GA seed")
     pc.add_argument("--depth-um", type=float, default=None, help="command: depth along the surface normal, µm")
     pc.add_argument("--no-report", action="store_true", help="skip report.html")
     pc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
@@ -140,10 +139,11 @@ def register(sub, render_sub) -> None:
     dr = sub.add_parser("drift", help="online drift compensation from reference-array samples; η per axis")
     dr.add_argument("drift", help="drift.csv: t_min,dx_um,dy_um,dz_um")
     dr.add_argument("--out", required=True, help="output folder")
-    dr.add_argument("--method", choices=list(DRIFT_METHODS), default="kalman", help="compensation written (default kalman)")
+    dr.add_argument("--method", choices=choices_from("markcal.stages.drift", "METHODS"), default="kalman",
+                    metavar="METHOD", help="compensation written: %(choices)s")
     dr.add_argument("--truth", default=None, help="true drift at fine resolution (drift_true.csv) to judge between samples")
     dr.add_argument("--noise-um", type=float, default=0.005, help="noise of one drift sample, µm (Kalman filters)")
-    dr.add_argument("--alpha", type=float, default=0.8, help="α of the paper's filter (default 0.8)")
+    dr.add_argument("--alpha", type=float, default=0.8, help="α of the paper's filter")
     dr.add_argument("--no-report", action="store_true", help="skip report.html")
     dr.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     dr.set_defaults(func=cmd_drift)
@@ -153,7 +153,7 @@ def register(sub, render_sub) -> None:
     rp.add_argument("--out", required=True)
     rp.add_argument("--noise-um", type=float, default=0.010, help="measurement noise (1 σ), µm")
     rp.add_argument("--drift-kind", choices=["thermal", "wander"], default="thermal")
-    rp.add_argument("--pose-grid", type=int, default=7, help="pose marks per side (default 7: 49 marks)")
+    rp.add_argument("--pose-grid", type=int, default=7, help="pose marks per side (7: 49 marks)")
     rp.add_argument("--om-images", action="store_true",
                     help="write om/ micrographs of the pose marks and marks.csv instead of pose.csv")
     rp.add_argument("--quiet", action="store_true")
