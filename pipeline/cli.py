@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
+import warnings
 
 from markcal.stages.errors import MarkcalError
 
@@ -38,8 +40,40 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def _numba_cache() -> None:
+    """numba caches compiled kernels beside the package; when that is read-only, use the user's cache."""
+    here = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    if "NUMBA_CACHE_DIR" not in os.environ and not os.access(here, os.W_OK):
+        os.environ["NUMBA_CACHE_DIR"] = os.path.join(
+            os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "markcal", "numba")
+
+
+def _report_warnings(caught, quiet: bool) -> None:
+    """Library warnings (numpy, tifffile, …) once, as one line each kind, unless --quiet."""
+    if quiet or not caught:
+        return
+    kinds = {}
+    for w in caught:
+        kinds.setdefault((w.category.__name__, str(w.message).splitlines()[0][:160]), 0)
+        kinds[(w.category.__name__, str(w.message).splitlines()[0][:160])] += 1
+    for (cat, msg), n in list(kinds.items())[:5]:
+        print(f"markcal: warning: {cat}: {msg}" + (f" ({n} times)" if n > 1 else ""), file=sys.stderr)
+
+
 def main(argv=None) -> int:
+    _numba_cache()
     args = build_parser().parse_args(argv)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("default")
+        for developer_only in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
+            warnings.simplefilter("ignore", developer_only)
+        try:
+            return _run(args)
+        finally:
+            _report_warnings(caught, bool(getattr(args, "quiet", False)))
+
+
+def _run(args) -> int:
     try:
         return args.func(args)
     except MarkcalError as exc:

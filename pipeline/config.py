@@ -165,8 +165,9 @@ def read_plate_spec(path) -> PlateSpec:
 
 # ------------------------------------------------------------------ selfcal setup
 
-SELFCAL_SCHEMA = {"": {"n": Key("int", required=True), "pitch_mm": Key("float", required=True, unit="mm"),
-                       "k": Key("int", 0), "views": Key("ints", (0, 1, 2, 3))}}
+SELFCAL_SCHEMA = {"": {"n": Key("int", required=True, min=3, max=401),
+                       "pitch_mm": Key("float", required=True, positive=True, max=10_000.0, unit="mm"),
+                       "k": Key("int", 0, min=0, max=3600), "views": Key("ints", (0, 1, 2, 3), min=0, max=3)}}
 
 
 def read_selfcal_setup(path):
@@ -213,19 +214,29 @@ def _servo_schema() -> dict:
     from markcal.stages.servo_cases import ServoConfig
     from markcal.stages.servo_plant import PlantParams
     c, g, p = ServoConfig(), PIDGains(), PlantParams()
-    num = lambda default, unit="": Key("float", default, unit=unit)  # noqa: E731
+
+    def num(default, unit="", **limits):
+        return Key("float", default, unit=unit, **limits)
     return {
-        "plant": {f.name: num(getattr(p, f.name)) for f in fields(PlantParams)},
+        "plant": {f.name: num(getattr(p, f.name), positive=f.name == "ts_s") for f in fields(PlantParams)},
         "controller": {**{f.name: num(getattr(g, f.name)) for f in fields(PIDGains)},
-                       "u_max_v": num(c.u_max_v, "V"), "friction_v": num(c.friction_v, "V")},
-        "repetitive": {"tau": num(c.rc_tau), "kr": num(c.rc_kr), "m": Key("int", "auto", also=("auto",))},
-        "step": {"strokes_mm": Key("floats", c.strokes_mm, unit="mm"), "velocity_mm_s": num(c.velocity_mm_s),
-                 "acceleration_mm_s2": num(c.acceleration_mm_s2), "jerk_mm_s3": num(c.jerk_mm_s3),
-                 "dwell_s": num(c.dwell_s, "s")},
-        "sine": {"amplitudes_mm": Key("floats", c.amplitudes_mm, unit="mm"),
-                 "frequencies_hz": Key("floats", c.frequencies_hz, unit="Hz"), "periods": num(c.periods)},
-        "metrics": {"settle_band_um": num(c.settle_band_um, "µm")},
+                       "u_max_v": num(c.u_max_v, "V", positive=True), "friction_v": num(c.friction_v, "V", min=0.0)},
+        "repetitive": {"tau": num(c.rc_tau), "kr": num(c.rc_kr), "m": Key("int", "auto", also=("auto",), min=0,
+                                                                           max=100_000)},
+        "step": {"strokes_mm": Key("floats", c.strokes_mm, unit="mm", min=-10_000.0, max=10_000.0),
+                 "velocity_mm_s": num(c.velocity_mm_s, "mm/s", positive=True, max=1e6),
+                 "acceleration_mm_s2": num(c.acceleration_mm_s2, "mm/s²", positive=True, max=1e9),
+                 "jerk_mm_s3": num(c.jerk_mm_s3, "mm/s³", positive=True),
+                 "dwell_s": num(c.dwell_s, "s", min=0.0, max=600.0)},
+        "sine": {"amplitudes_mm": Key("floats", c.amplitudes_mm, unit="mm", positive=True, max=10_000.0),
+                 "frequencies_hz": Key("floats", c.frequencies_hz, unit="Hz", min=1e-3, max=1e4),
+                 "periods": num(c.periods, positive=True, max=1000.0)},
+        "metrics": {"settle_band_um": num(c.settle_band_um, "µm", positive=True)},
     }
+
+
+#: the most samples one simulated case may have (memory: ~10 float arrays per sample)
+MAX_SERVO_SAMPLES = 20_000_000
 
 
 def read_servo_config(path):
@@ -251,6 +262,13 @@ def read_servo_config(path):
         validate_config(cfg)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
+    longest_s = max([cfg.periods / f for f in cfg.frequencies_hz]
+                    + [abs(x) / cfg.velocity_mm_s + cfg.velocity_mm_s / cfg.acceleration_mm_s2 + cfg.dwell_s
+                       for x in cfg.strokes_mm])
+    if longest_s / cfg.plant.ts_s > MAX_SERVO_SAMPLES:
+        raise MarkcalError(f"the longest case would be {longest_s / cfg.plant.ts_s:.3g} samples ({longest_s:.4g} s at "
+                           f"ts_s = {cfg.plant.ts_s:g} s); at most {MAX_SERVO_SAMPLES:,} (fewer periods, a higher "
+                           "frequency or a shorter dwell)", path)
     return cfg
 
 
@@ -285,8 +303,8 @@ def read_batch_config(path, flow_options: dict, flow_tolerances: dict) -> dict:
         for tk, tv in tol.items():
             if not (tk.startswith("max_") or tk.startswith("min_")) or len(tk) < 5:
                 raise MarkcalError(f"tolerance '{tk}' in [{flow}.tolerance] must be max_<key> or min_<key>", path)
-            if isinstance(tv, bool) or not isinstance(tv, (int, float)):
-                raise MarkcalError(f"tolerance '{tk}' in [{flow}.tolerance] must be a number", path)
+            if isinstance(tv, bool) or not isinstance(tv, (int, float)) or not math.isfinite(tv):
+                raise MarkcalError(f"tolerance '{tk}' in [{flow}.tolerance] must be a finite number", path)
             cfg[flow]["tolerances"][tk] = float(tv)
         for k, v in sec.items():
             if k == "tolerance":

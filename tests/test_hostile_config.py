@@ -1,0 +1,51 @@
+"""Config files with sizes that would exhaust memory or values out of physical range: one line, exit 1 (issue 17)."""
+from __future__ import annotations
+
+import pytest
+
+from markcal.pipeline.cli import main
+
+
+def _err(capsys):
+    return capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize("text,needle", [
+    ("[step]\ndwell_s = 1e7\n", "dwell_s must be at most 600"),
+    ("[sine]\nperiods = 1e9\n", "periods must be at most 1000"),
+    ("[sine]\nfrequencies_hz = [1e-9]\n", "frequencies_hz must be at least 0.001"),
+    ("[step]\nstrokes_mm = [1e300]\n", "strokes_mm must be at most 10000"),
+    ("[sine]\nperiods = 900\nfrequencies_hz = [0.001]\n", "samples"),        # in range, but 9e9 samples
+    ("[plant]\nts_s = nan\n", "must be finite"),
+])
+def test_servo_config_bounds(tmp_path, capsys, text, needle):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    assert main(["servo", str(cfg), "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    err = _err(capsys)
+    assert len(err) == 1 and needle in err[0] and str(cfg) in err[0], err
+    assert not (tmp_path / "o" / "summary.json").exists()
+
+
+@pytest.mark.parametrize("text,needle", [("n = 100001\npitch_mm = 10.0\n", "n must be at most 401"),
+                                         ("n = 11\npitch_mm = inf\n", "must be finite"),
+                                         ("n = 11\npitch_mm = 10.0\nviews = [0, 7]\n", "views must be at most 3")])
+def test_selfcal_setup_bounds(tmp_path, capsys, text, needle):
+    from markcal.fixtures.selfcal_stage import SelfcalOptions, render_selfcal, save_selfcal_session
+    d = tmp_path / "s"
+    save_selfcal_session(d, render_selfcal(0, SelfcalOptions(n=5, k=8)))
+    (d / "setup.toml").write_text(text)
+    assert main(["selfcal", str(d), "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    err = _err(capsys)
+    assert len(err) == 1 and needle in err[0], err
+
+
+def test_batch_nan_tolerance_refused(tmp_path, capsys):
+    d = tmp_path / "in"
+    d.mkdir()
+    (d / "x.csv").write_text("t_s,ref_mm,pos_mm\n")
+    cfg = tmp_path / "b.toml"
+    cfg.write_text("[servo.tolerance]\nmax_mae_um = nan\n")
+    assert main(["batch", str(d), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"]) == 1
+    err = _err(capsys)
+    assert len(err) == 1 and "finite number" in err[0], err
