@@ -20,6 +20,13 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def add_argument(self, *args, **kwargs):
+        """As argparse's; an option with a default but no help still shows its default."""
+        if (not kwargs.get("help") and kwargs.get("default") not in (None, False, argparse.SUPPRESS)
+                and args and args[0].startswith("-")):
+            kwargs["help"] = "default: %(default)s"
+        return super().add_argument(*args, **kwargs)
+
 
 def add_run_options(p) -> None:
     """``--tol KEY<=VALUE`` (repeatable) and the traceability fields of a flow command."""
