@@ -8,7 +8,7 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
     """Shows each option's default (except None / False, whose meaning the help text states)."""
 
     def _get_help_string(self, action):
-        if action.default in (None, False) or action.default is argparse.SUPPRESS:
+        if action.default is None or action.default is False or action.default is argparse.SUPPRESS:
             return action.help
         return super()._get_help_string(action)
 
@@ -22,8 +22,9 @@ class Parser(argparse.ArgumentParser):
 
     def add_argument(self, *args, **kwargs):
         """As argparse's; an option with a default but no help still shows its default."""
-        if (not kwargs.get("help") and kwargs.get("default") not in (None, False, argparse.SUPPRESS)
-                and args and args[0].startswith("-")):
+        d = kwargs.get("default")
+        if not kwargs.get("help") and not (d is None or d is False or d is argparse.SUPPRESS) \
+                and args and args[0].startswith("-"):
             kwargs["help"] = "default: %(default)s"
         return super().add_argument(*args, **kwargs)
 
