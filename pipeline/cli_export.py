@@ -107,5 +107,6 @@ def register(sub, render_sub) -> None:
     ins = sub.add_parser("inspect", help="read a controller table back and draw its field (report.html, table.csv)")
     ins.add_argument("table", help=".cor, .ctb, correXion input or A3200 file")
     ins.add_argument("--out", help="output folder (default: <name>_inspect)")
+    ins.add_argument("--quiet", action="store_true", help="no progress lines (structural warnings still go to stderr)")
     _table_options(ins)
     ins.set_defaults(func=cmd_inspect)

@@ -171,7 +171,14 @@ def encode_ctb(table: GridCorrection, bits_per_mm: float, opts: CtbOptions = Ctb
     base_y = gy * bits_per_mm if opts.content == "absolute" else 0.0
     vx = np.rint(32767.5 + base_x + table.dx_mm * bits_per_mm)
     vy = np.rint(32767.5 + base_y + table.dy_mm * bits_per_mm)
-    check_range(np.r_[vx.ravel(), vy.ravel()], 0, 65535, ".ctb entry", "bits")
+    try:
+        check_range(np.r_[vx.ravel(), vy.ravel()], 0, 65535, ".ctb entry", "bits")
+    except MarkcalError as exc:
+        if opts.content != "absolute":
+            raise
+        raise MarkcalError(exc.message + ": with absolute content the nominal field already spans the whole 16-bit "
+                           "range, so a correction at the edge overflows; write the offsets instead "
+                           "(--ctb-content offset) or give a larger --lens-mm") from None
     vx, vy = _entries_to_xy(vx, opts.outer), _entries_to_xy(vy, opts.outer)
     return vx.astype("<u2").tobytes() + vy.astype("<u2").tobytes()
 
