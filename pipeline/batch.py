@@ -245,6 +245,16 @@ def columns(records) -> list:
 
 # ------------------------------------------------------------------ the whole batch
 
+def _tolerance_keys(record) -> list:
+    """``max_<key>``-style names of the limits a record was checked against (from its ``checks``)."""
+    out = []
+    for c in (record.get("checks") or "").split("; "):
+        parts = c.split(" ")
+        if len(parts) == 3:
+            out.append(("max_" if parts[1] == "<=" else "min_") + parts[0])
+    return out
+
+
 def _expected_cost(job) -> float:
     """Rough run time of a job: the flow's cost times the input's size relative to 10 MB (at least 1)."""
     p = job["input"]
@@ -258,10 +268,12 @@ def _expected_cost(job) -> float:
 
 @dataclass(frozen=True)
 class FlowColumns:
-    """What the index shows of one flow: its key figures and trends (summary key, axis caption)."""
+    """What the index shows of one flow: its key figures (summary keys and their captions with units)
+    and the trends plotted (summary key, axis caption): the toleranced figures first."""
 
     key_figures: tuple
     trends: tuple
+    captions: tuple = ()
 
 
 @dataclass
@@ -347,8 +359,13 @@ def run_batch(input_dir, out_dir, config_path=None, workers: int = 1, scheduler:
             ex.map_unordered(run_job, todo, collect, on_crash=lambda job, why: make_record(job, None, reason=why))
     ordered = [records[j["name"]] for j in found.jobs]
     present = {r["flow"] for r in ordered}
-    shown = {n: FlowColumns(f.descriptor.key_names,
-                            tuple((k, f.descriptor.figure(k).caption) for k in f.descriptor.trends))
-             for n, f in all_flows().items() if n in present}
+    shown = {}
+    for n, f in all_flows().items():
+        if n in present:
+            d = f.descriptor
+            limited = [tk[4:] for r in ordered if r["flow"] == n for tk in _tolerance_keys(r)]
+            trend_keys = list(dict.fromkeys([*limited, *d.trends]))
+            shown[n] = FlowColumns(d.key_names, tuple((k, d.figure(k).caption) for k in trend_keys),
+                                   tuple(d.figure(k).caption for k in d.key_names))
     return BatchResult(ordered, found.ignored, len(todo), n_reused, time.perf_counter() - t0,
                        columns(ordered), shown)

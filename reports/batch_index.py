@@ -68,8 +68,8 @@ def _main_figure(rec, flows):
     e = flows.get(rec["flow"])
     if e is None or not e.trends:
         return "", None
-    k = e.trends[0][0]
-    return k, rec.get(k)
+    k, caption = e.trends[0]
+    return caption, rec.get(k)
 
 
 def _summary_table(records, flows, out_dir) -> str:
@@ -92,9 +92,11 @@ def _summary_table(records, flows, out_dir) -> str:
             f'<tbody>{"".join(rows)}</tbody></table>')
 
 
-def _flow_table(keys, records, flow) -> str:
-    head = ["input", "group", "status", "input time", *keys, "runtime, s", "reused"]
-    ths = "".join(f'<th class="s{" l" if i < 2 else ""}">{esc(h)}</th>' for i, h in enumerate(head))
+def _flow_table(keys, records, flow, captions=None) -> str:
+    head = ["input", "group", "status", "input time", *(captions or keys), "runtime, s", "reused"]
+    tips = ["", "", "", "", *keys, "runtime_s", "reused"]
+    ths = "".join(f'<th class="s{" l" if i < 2 else ""}" title="{esc(t)}">{esc(h)}</th>'
+                  for i, (h, t) in enumerate(zip(head, tips)))
     rows = []
     for r in records:
         rows.append(f'<tr class="st-{r["status"]}" data-status="{r["status"]}">'
@@ -132,7 +134,9 @@ def _trend_plot(flow, key, label, records) -> str:
             if idx:
                 ax.scatter(idx, [vals[i] for i in idx], c=c, marker=markers[gi % len(markers)], s=36,
                            label=f"{g or '(top)'}: {STATUS_TEXT[st]}", zorder=3)
-    ax.plot(keep, [vals[i] for i in keep], color="#999", lw=0.8, zorder=2)
+    for g in groups:                     # a line joins the inputs of one group (machine) only
+        gi_keep = [i for i in keep if rs[i]["group"] == g]
+        ax.plot(gi_keep, [vals[i] for i in gi_keep], color="#999", lw=0.8, zorder=2)
     for op, lim in _limit(rs, key).items():
         ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {op} {lim:g}")
     ax.set_xticks(keep)
@@ -169,7 +173,7 @@ def batch_index_html(result, out_dir) -> str:
         parts.append(f"<h2>{esc(f)}: key figures</h2>")
         checks = next((r["checks"] for r in rs if r["checks"]), "")
         parts.append(f"<p>tolerance: {esc(checks) if checks else 'none (status done)'}</p>")
-        parts.append(_flow_table(list(shown.key_figures), rs, f))
+        parts.append(_flow_table(list(shown.key_figures), rs, f, list(shown.captions)))
         for key, label in shown.trends:
             parts.append(_trend_plot(f, key, label, rs))
     if result.ignored:
