@@ -79,6 +79,31 @@ def cmd_render_servo(args) -> int:
     return 0
 
 
+def cmd_render_servo_log(args) -> int:
+    from markcal.fixtures.servo_log import LogOptions, render_servo_log, save_servo_log
+    from markcal.pipeline.progress import progress
+
+    say = progress(args.quiet)
+    opts = LogOptions(kind=args.kind, n_moves=args.moves, stroke_mm=args.stroke_mm, hold_s=args.hold_s,
+                      ts_s=args.ts_ms * 1e-3, fn_hz=args.fn_hz, zeta=args.zeta, dc_gain=args.dc_gain,
+                      amplitude_mm=args.amplitude_mm, frequency_hz=args.frequency_hz, periods=args.periods,
+                      noise_nm=args.noise_nm, jitter=args.jitter, time_unit=args.time_unit, pos_unit=args.pos_unit,
+                      counts_per_mm=args.counts_per_mm, layout=args.layout, band_um=args.band_um,
+                      n_lines=args.lines)
+    say(f"rendering a {opts.kind} drive log ({opts.layout}, time in {opts.time_unit}, positions in "
+        f"{opts.pos_unit}), seed {args.seed}")
+    r = render_servo_log(args.seed, opts)
+    os.makedirs(args.out, exist_ok=True)
+    ext = {"csv": "csv", "tsv": "tsv", "ws": "txt"}[opts.layout]
+    read = save_servo_log(os.path.join(args.out, f"log.{ext}"), r, os.path.join(args.out, "truth.json"))
+    flags = " ".join(f"--{k.replace('_', '-')} {v:g}" if isinstance(v, float) else f"--{k.replace('_', '-')} {v}"
+                     for k, v in read.items())
+    say(f"read it with: markcal servo --trace {os.path.join(args.out, f'log.{ext}')} {flags} --settle-band-um "
+        f"{opts.band_um:g} --out OUT")
+    print(os.path.abspath(args.out))
+    return 0
+
+
 def register(sub, render_sub) -> None:
     """Add ``servo`` to the top-level commands and ``servo`` to ``render``."""
     sv = sub.add_parser("servo", help="macro-stage servo: composite controller vs baseline, or a measured trace")
@@ -114,3 +139,30 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--noise-nm", type=float, default=5.0, help="encoder noise, 1 sigma, nm")
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_servo)
+
+    rl = render_sub.add_parser("servo-log", help="synthetic drive log (second-order moves or sine tracking) + truth")
+    rl.add_argument("--seed", type=int, default=0)
+    rl.add_argument("--out", required=True)
+    rl.add_argument("--kind", choices=["square", "steps", "sine"], default="square")
+    rl.add_argument("--moves", type=int, default=8, help="number of moves (square / steps)")
+    rl.add_argument("--lines", type=int, default=0, help="fill this many lines instead (e.g. 1000000)")
+    rl.add_argument("--stroke-mm", type=float, default=1.0)
+    rl.add_argument("--hold-s", type=float, default=0.2, help="time between steps, s")
+    rl.add_argument("--ts-ms", type=float, default=0.1, help="sample step, ms")
+    rl.add_argument("--fn-hz", type=float, default=40.0, help="natural frequency of the stage loop, Hz")
+    rl.add_argument("--zeta", type=float, default=0.4, help="damping ratio")
+    rl.add_argument("--dc-gain", type=float, default=1.0, help="static gain K (steady-state error (1 - K) x target)")
+    rl.add_argument("--amplitude-mm", type=float, default=1.0)
+    rl.add_argument("--frequency-hz", type=float, default=2.0)
+    rl.add_argument("--periods", type=float, default=3.0)
+    rl.add_argument("--noise-nm", type=float, default=5.0, help="encoder noise, 1 sigma, nm")
+    rl.add_argument("--jitter", type=float, default=0.1, help="timestamp jitter, peak-to-peak fraction of the step")
+    rl.add_argument("--time-unit", choices=["s", "ms", "us"], default="s")
+    rl.add_argument("--pos-unit", choices=["mm", "um", "counts"], default="mm")
+    rl.add_argument("--counts-per-mm", type=float, default=100_000.0, help="encoder counts per mm (--pos-unit counts)")
+    rl.add_argument("--layout", choices=["csv", "tsv", "ws"], default="csv",
+                    help="csv: header t_<unit>,ref_<unit>,pos_<unit>; tsv: drive export time/target/demand/actual/"
+                         "current_A; ws: whitespace, no header, comment lines, columns sample time actual target")
+    rl.add_argument("--band-um", type=float, default=5.0, help="settling band of the truth, µm")
+    rl.add_argument("--quiet", action="store_true")
+    rl.set_defaults(func=cmd_render_servo_log)
