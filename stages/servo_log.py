@@ -186,8 +186,8 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
     for (role, _), i, name in zip(roles, idx, names):
         s = df[i]
         raw = None
-        if s.dtype == object:
-            raw = s.to_numpy()
+        if not pd.api.types.is_numeric_dtype(s.dtype):
+            raw = s.to_numpy(dtype=object)
             v = pd.to_numeric(s, errors="coerce").to_numpy(dtype=float)
         else:
             v = s.to_numpy(dtype=float)
