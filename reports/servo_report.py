@@ -245,27 +245,42 @@ def _sim_parts(res):
 
 
 #: at most this many moves are drawn in the overlay and listed in the report's table (moves.csv has all)
-MAX_MOVES_SHOWN = 200
+MAX_MOVES_SHOWN = 100
 
 
 def _ms(v):
     return num(v * 1e3 if v is not None and np.isfinite(v) else None, "ms")
 
 
+def _envelope(t, y, n_buckets=2000):
+    """Min and max of ``y`` per bucket of samples (so short spikes survive decimation), in time order."""
+    k = max(1, len(t) // n_buckets)
+    m = len(t) // k * k
+    if k == 1 or m == 0:
+        return t, y
+    tb, yb = t[:m].reshape(-1, k), y[:m].reshape(-1, k)
+    lo, hi = yb.argmin(axis=1), yb.argmax(axis=1)
+    first = np.minimum(lo, hi)[:, None]
+    second = np.maximum(lo, hi)[:, None]
+    idx = np.hstack((first, second))
+    return np.take_along_axis(tb, idx, 1).ravel(), np.take_along_axis(yb, idx, 1).ravel()
+
+
 def _overview(res):
-    """The whole log (decimated), reference and position, and the error."""
+    """The whole log (min/max per bucket when long), reference and position, and the error."""
     lg = res.trace.log
-    step = max(1, len(lg.t_s) // 20000)
-    t, r, p = lg.t_s[::step], lg.ref_mm[::step], lg.pos_mm[::step]
     fig = new_figure(11, 3.2)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    ax1.plot(t, r, color=C_REF, ls="--", lw=1, label=f"reference ({lg.columns[1]})")
-    ax1.plot(t, p, color=C_CCA, lw=1, label=f"measured ({lg.columns[2]})")
+    ax1.plot(*_envelope(lg.t_s, lg.ref_mm), color=C_REF, ls="--", lw=1, label=f"reference ({lg.columns[1]})")
+    ax1.plot(*_envelope(lg.t_s, lg.pos_mm), color=C_CCA, lw=1, label=f"measured ({lg.columns[2]})")
     ax1.set_xlabel("t (s)"); ax1.set_ylabel("position (mm)"); ax1.legend(fontsize=8); ax1.grid(alpha=0.3)
-    ax2.plot(t, (r - p) * 1e3, color=C_CCA, lw=0.8)
+    te, ee = _envelope(lg.t_s, (lg.ref_mm - lg.pos_mm) * 1e3)
+    ax2.plot(te, ee, color=C_CCA, lw=0.8)
     ax2.set_xlabel("t (s)"); ax2.set_ylabel("reference − position (µm)"); ax2.grid(alpha=0.3)
+    many = len(lg.t_s) > 4000
     return img(png_b64(fig), "log", f"The whole log ({len(lg.t_s):,} samples"
-               + (f", every {step}th drawn" if step > 1 else "") + ") and its tracking error.")
+               + ("; drawn as the minimum and maximum of every " f"{len(lg.t_s) // 2000} samples" if many else "")
+               + ") and its tracking error.")
 
 
 def _overlay(res):
@@ -275,24 +290,32 @@ def _overlay(res):
     n = min(len(mv.lo), MAX_MOVES_SHOWN)
     fig = new_figure(11, 3.6)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    from matplotlib.collections import LineCollection
     cmap = __import__("matplotlib").colormaps["viridis"]
+    set_ = np.asarray(mc["settling_time_s"][:n])
+    t_show = 1.3 * float(np.nanmax(set_)) if np.any(np.isfinite(set_)) else np.inf
+    left, right, colours = [], [], []
     for k in range(n):
         w = slice(int(mv.lo[k]), int(mv.hi[k]) + 1)
         t = lg.t_s[w] - lg.t_s[mv.end[k]]
         start, stroke = mc["start_mm"][k], mc["stroke_mm"][k]
-        col = cmap(k / max(n - 1, 1))
-        ax1.plot(t * 1e3, (lg.pos_mm[w] - start) / stroke, color=col, lw=0.8, alpha=0.7)
-        ax2.plot(t * 1e3, (lg.pos_mm[w] - (start + stroke)) * 1e3 * np.sign(stroke), color=col, lw=0.8, alpha=0.7)
+        d = max(1, len(t) // 300)                            # at most ~300 points per move on the left
+        left.append(np.column_stack((t[::d] * 1e3, (lg.pos_mm[w][::d] - start) / stroke)))
+        near = t <= t_show                                   # the approach: full resolution up to the settling
+        right.append(np.column_stack((t[near] * 1e3, (lg.pos_mm[w][near] - (start + stroke)) * 1e3 * np.sign(stroke))))
+        colours.append(cmap(k / max(n - 1, 1)))
+    ax1.add_collection(LineCollection(left, colors=colours, linewidths=0.8, alpha=0.7))
+    ax2.add_collection(LineCollection(right, colors=colours, linewidths=0.8, alpha=0.7))
+    ax1.autoscale_view()
+    ax2.autoscale_view()
     bands = mc["settle_band_um"][:n]
     ax1.axhline(1.0, color=C_REF, lw=0.8, ls="--")
     ax1.set_xlabel("t − step of the reference (ms)"); ax1.set_ylabel("(position − start) / stroke")
     ax1.set_title(f"{n} move(s) overlaid (colour: order in the log)", fontsize=10)
     b = float(np.max(bands))
     ax2.axhspan(-b, b, color="#cfe8cf", alpha=0.7, lw=0)
-    set_ = np.asarray(mc["settling_time_s"][:n])
-    if np.any(np.isfinite(set_)):
-        hi = float(np.nanmax(set_)) * 1e3
-        ax2.set_xlim(-0.05 * hi, 1.3 * hi)
+    if np.isfinite(t_show):
+        ax2.set_xlim(-0.05 * t_show * 1e3, t_show * 1e3)
     ax2.set_ylim(-8 * b, 8 * b)
     ax2.set_xlabel("t − step of the reference (ms)"); ax2.set_ylabel("(position − target) × direction (µm)")
     ax2.set_title(f"approach to the target, ±{b:.3g} µm band (green)", fontsize=10)

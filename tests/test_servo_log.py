@@ -223,3 +223,18 @@ def test_small_gap_accepted(tmp_path):
 def test_log_options_refused_without_trace(tmp_path, capsys):
     assert main(["servo", "--time-col", "t", "--out", str(tmp_path / "o"), "--quiet"]) == 1
     assert "--time-col: only with --trace LOG" in capsys.readouterr().err
+
+
+def test_report_shows_every_move_overlaid(tmp_path):
+    r = render_servo_log(6, LogOptions(kind="steps", n_moves=4, layout="ws", time_unit="us"))
+    p = tmp_path / "log.txt"
+    read = save_servo_log(p, r)
+    out = tmp_path / "o"
+    assert main(["servo", "--trace", str(p), *_flags(read), "--out", str(out), "--quiet"]) in (0, 4)
+    html = (out / "report.html").read_text()
+    assert html.count("<img") == 2 and 'alt="moves overlaid"' in html and "Statistics over the moves" in html
+    assert html.count("<tr>") >= 4 + 5 and "src=\"http" not in html
+    assert json.loads((out / "summary.json").read_text())["outputs"] == sorted(
+        ["metrics.csv", "moves.csv", "traces.csv", "report.html"])
+    m = read_csv(out / "metrics.csv")
+    assert list(m["case"]) == ["trace"] * 4 and np.allclose(m["amplitude_mm"], np.abs([t["stroke_mm"] for t in r.truth["moves"]]))
