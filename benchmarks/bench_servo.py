@@ -45,19 +45,24 @@ def bench_log(n_lines=1_000_000, repeats=5):
         flags = []
         for k, v in read.items():
             flags += [f"--{k.replace('_', '-')}", f"{v:g}" if isinstance(v, float) else str(v)]
-        walls, cpus = [], []
-        for i in range(repeats + 1):
-            before = resource.getrusage(resource.RUSAGE_CHILDREN)
-            t0 = time.perf_counter()
-            subprocess.run([markcal, "servo", "--trace", log, *flags, "--settle-band-um", "5", "--out",
-                            os.path.join(d, f"o{i}"), "--quiet"], check=False, stdout=subprocess.DEVNULL)
-            wall = time.perf_counter() - t0
-            after = resource.getrusage(resource.RUSAGE_CHILDREN)
-            cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
-            if i:                                  # the first run warms the file cache and numba's cache
-                walls.append(wall)
-                cpus.append(cpu)
+        def timed(cmd):
+            walls, cpus = [], []
+            for i in range(repeats + 1):
+                before = resource.getrusage(resource.RUSAGE_CHILDREN)
+                t0 = time.perf_counter()
+                subprocess.run([c.replace("{i}", str(i)) for c in cmd], check=False, stdout=subprocess.DEVNULL)
+                wall = time.perf_counter() - t0
+                after = resource.getrusage(resource.RUSAGE_CHILDREN)
+                if i:                              # the first run warms the file cache and numba's cache
+                    walls.append(wall)
+                    cpus.append((after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime))
+            return walls, cpus
+        walls, cpus = timed([markcal, "servo", "--trace", log, *flags, "--settle-band-um", "5", "--out",
+                             os.path.join(d, "o{i}"), "--quiet"])
+        w0, c0 = timed([markcal, "servo", "--help"])
         size = os.path.getsize(log) / 1e6
+    print(f"start-up alone (markcal servo --help): wall median {statistics.median(w0):.2f} s, CPU median "
+          f"{statistics.median(c0):.2f} s")
     print(f"drive log {n_lines:,} lines ({size:.0f} MB TSV, ms, counts), whole command with report: wall median "
           f"{statistics.median(walls):.2f} s (min {min(walls):.2f}, max {max(walls):.2f}), CPU median "
           f"{statistics.median(cpus):.2f} s; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores"

@@ -23,13 +23,13 @@ def traces_table(result: ServoResult, max_points: int = 1000) -> dict:
     """traces.csv as columns: each run decimated to at most ``max_points`` samples.
 
     Moves: the whole record; sinusoids: the evaluated (last) period; a drive log:
-    the whole log once (at most 20,000 samples).
+    the whole log once (at most 10,000 samples).
     """
     cols = {c: [] for c in TRACE_COLUMNS}
     runs = result.runs
     if result.mode == "trace":
         runs = [replace(result.runs[0], window=slice(None))]
-        max_points = max(max_points, 20000)
+        max_points = max(max_points, 10000)
     for r in runs:
         idx = np.arange(len(r.sim.t_s))[r.window]
         step = max(1, int(np.ceil(len(idx) / max_points)))
