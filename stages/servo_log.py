@@ -194,6 +194,8 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
         k, cell = _first_bad(raw, v)
         if k is not None:
             line = lay.first_data_line + k
+            if df.iloc[k].isna().all():
+                raise MarkcalError(f"line {line} is blank (a data line is missing)", path)
             if cell is None and np.isnan(v[k]):
                 cell = ""
             what = f"{cell!r} is not a number" if cell is not None else f"{v[k]} is not a finite number"

@@ -191,13 +191,17 @@ def _bad(kind):
     elif kind == "index":
         args = ["--pos-col", "7"]
         needle = "position column index 7 is out of range: the log has 3 columns"
+    elif kind == "blank":
+        lines[50] = ""
+        needle = "line 51 is blank"
     elif kind == "counts":
         args = ["--pos-unit", "counts"]
         needle = "positions in counts need a positive counts per mm"
     return "\n".join(lines) + "\n", needle, args
 
 
-@pytest.mark.parametrize("kind", ["back", "repeat", "gap", "missing", "text", "flat", "index", "counts"])
+@pytest.mark.parametrize("kind", ["back", "repeat", "gap", "missing", "text", "flat", "index", "blank",
+                                  "counts"])
 def test_bad_logs_refused(tmp_path, capsys, kind):
     text, needle, args = _bad(kind)
     p = tmp_path / "bad.csv"
