@@ -38,6 +38,7 @@ class LogLayout:
     header: tuple             # column names ((): no header row)
     first_data_line: int      # 1-based line number of the first data row
     n_fields: int             # fields on the first data (or header) line
+    decimal: str = "."        # "," in semicolon-separated logs written with decimal commas
 
 
 @dataclass(frozen=True)
@@ -69,9 +70,10 @@ def sniff_layout(path) -> LogLayout:
     """Find the separator, the header and the first data line of a log (reads its first lines).
 
     Leading blank lines and comment lines (``#``, ``%``, ``;``, ``//``) are skipped.
-    The separator is a tab, a comma or a semicolon when the first line holds one,
-    otherwise runs of blanks. The first line is a header when one of its fields is
-    not a number.
+    The separator is a tab, a semicolon or a comma when the first line holds one
+    (in that order), otherwise runs of blanks; decimal commas are recognised in
+    tab-, semicolon- and blank-separated logs whose first data line has commas and no
+    points. The first line is a header when one of its fields is not a number.
     """
     path = os.fspath(path)
     if os.path.exists(path) and not os.path.isfile(path):
@@ -88,17 +90,22 @@ def sniff_layout(path) -> LogLayout:
                     raise MarkcalError("no data in the first 10,000 lines (only blank or comment lines)", path)
             else:
                 raise MarkcalError("empty log (no data lines)", path)
+            data = line if _is_number(line.replace(",", ".").split()[0].split(";")[0].split("\t")[0]) \
+                else fh.readline().strip()            # the first data line (after a header)
     except FileNotFoundError:
         raise MarkcalError("no such file", path) from None
     except UnicodeDecodeError:
         raise MarkcalError("not a text log (cannot decode as UTF-8)", path) from None
     except OSError as exc:
         raise MarkcalError(f"cannot read ({exc.strerror or exc})", path) from None
-    sep = "\t" if "\t" in line else "," if "," in line else ";" if ";" in line else "ws"
+    sep = "\t" if "\t" in line else ";" if ";" in line else "," if "," in line else "ws"
+    # "0,5;1,25": semicolons between fields, decimal commas inside them
+    decimal = "," if sep in (";", "\t", "ws") and "," in data and "." not in data else "."
     fields = _split(line, sep)
-    if all(_is_number(f) for f in fields):
-        return LogLayout(sep, (), lineno, len(fields))
-    return LogLayout(sep, tuple(fields), lineno + 1, len(fields))
+    num = (lambda f: _is_number(f.replace(",", "."))) if decimal == "," else _is_number
+    if all(num(f) for f in fields):
+        return LogLayout(sep, (), lineno, len(fields), decimal)
+    return LogLayout(sep, tuple(fields), lineno + 1, len(fields), decimal)
 
 
 def _column_index(spec, layout: LogLayout, role: str, path) -> int:
@@ -168,7 +175,7 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
     uniq = sorted(set(idx))
     kw = dict(sep=r"\s+" if lay.sep == "ws" else lay.sep, header=None, skiprows=lay.first_data_line - 1,
               usecols=uniq, skip_blank_lines=False, engine="c", comment=None, na_filter=True,
-              keep_default_na=False, na_values=[""], encoding="utf-8-sig")
+              keep_default_na=False, na_values=[""], encoding="utf-8-sig", decimal=lay.decimal)
     try:
         df = pd.read_csv(path, **kw)
     except pd.errors.EmptyDataError:

@@ -159,6 +159,22 @@ def test_columns_by_index_and_case(tmp_path, capsys):
     assert np.all(mc["t_end_s"] > ma["t_end_s"])
 
 
+def test_semicolon_decimal_comma_crlf_bom(tmp_path):
+    r = render_servo_log(8, LogOptions(n_moves=3, noise_nm=2.0))
+    p = tmp_path / "log.csv"
+    save_servo_log(p, r)
+    out_a = tmp_path / "a"
+    assert main(["servo", "--trace", str(p), "--settle-band-um", "5", "--out", str(out_a), "--quiet",
+                 "--no-report"]) in (0, 4)
+    text = p.read_text().replace(",", ";").replace(".", ",").replace("\n", "\r\n")
+    q = tmp_path / "eu.csv"
+    q.write_bytes(b"\xef\xbb\xbf" + b"# exported by a drive tool\r\n" + text.encode())
+    out_b = tmp_path / "b"
+    assert main(["servo", "--trace", str(q), "--settle-band-um", "5", "--out", str(out_b), "--quiet",
+                 "--no-report"]) in (0, 4)
+    assert (out_a / "moves.csv").read_bytes() == (out_b / "moves.csv").read_bytes()
+
+
 # ------------------------------------------------------------------ bad logs
 
 def _lines(n=200):
