@@ -9,6 +9,7 @@ from markcal.stages.servo_reading import PAPER_T1_BASE, PAPER_T2_BASE
 from markcal.stages.stats import reduction_pct
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.servo_control import RepetitiveParams, pid_frequency_response
+from markcal.stages.servo_log import MOVE_COLUMNS
 from markcal.stages.servo_plant import discretise, plant_frequency_response
 
 C_BASE, C_CCA, C_REF = "#d9342b", "#1f6fd1", "#444444"
@@ -243,21 +244,133 @@ def _sim_parts(res):
     return parts
 
 
-def _trace_parts(res):
-    s, r = res.summary, res.runs[0]
-    parts = [table(["quantity", "value"], [
-        ["kind", esc(s["trace_kind"])], ["samples", f"{s['n_samples']:,}"], ["sample step", num(s["ts_s"] * 1e3, "ms")],
-        ["amplitude / stroke", num(s["amplitude_mm"], "mm")], ["frequency", num(s["frequency_hz"], "Hz")],
-        [f"settling time (±{s['settle_band_um']:g} µm)", num(s["settling_time_s"] * 1e3 if np.isfinite(s["settling_time_s"]) else None, "ms")],
-        ["overshoot", num(s["overshoot_um"], "µm")], ["MAE", num(s["mae_um"], "µm")], ["STD", num(s["std_um"], "µm")]])]
+#: at most this many moves are drawn in the overlay and listed in the report's table (moves.csv has all)
+MAX_MOVES_SHOWN = 100
+
+
+def _ms(v):
+    return num(v * 1e3 if v is not None and np.isfinite(v) else None, "ms")
+
+
+def _envelope(t, y, n_buckets=2000):
+    """Min and max of ``y`` per bucket of samples (so short spikes survive decimation), in time order."""
+    k = max(1, len(t) // n_buckets)
+    m = len(t) // k * k
+    if k == 1 or m == 0:
+        return t, y
+    tb, yb = t[:m].reshape(-1, k), y[:m].reshape(-1, k)
+    lo, hi = yb.argmin(axis=1), yb.argmax(axis=1)
+    first = np.minimum(lo, hi)[:, None]
+    second = np.maximum(lo, hi)[:, None]
+    idx = np.hstack((first, second))
+    return np.take_along_axis(tb, idx, 1).ravel(), np.take_along_axis(yb, idx, 1).ravel()
+
+
+def _overview(res):
+    """The whole log (min/max per bucket when long), reference and position, and the error."""
+    lg = res.trace.log
     fig = new_figure(11, 3.2)
     ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
-    ax1.plot(r.sim.t_s, r.sim.ref_mm, color=C_REF, ls="--", lw=1, label="reference")
-    ax1.plot(r.sim.t_s, r.sim.pos_mm, color=C_CCA, lw=1, label="measured")
+    ax1.plot(*_envelope(lg.t_s, lg.ref_mm), color=C_REF, ls="--", lw=1, label=f"reference ({lg.columns[1]})")
+    ax1.plot(*_envelope(lg.t_s, lg.pos_mm), color=C_CCA, lw=1, label=f"measured ({lg.columns[2]})")
     ax1.set_xlabel("t (s)"); ax1.set_ylabel("position (mm)"); ax1.legend(fontsize=8); ax1.grid(alpha=0.3)
-    ax2.plot(r.sim.t_s, r.sim.err_mm * 1e3, color=C_CCA, lw=1)
-    ax2.set_xlabel("t (s)"); ax2.set_ylabel("ref − pos (µm)"); ax2.grid(alpha=0.3)
-    parts.append(img(png_b64(fig), "trace", "Measured trace and its tracking error."))
+    te, ee = _envelope(lg.t_s, (lg.ref_mm - lg.pos_mm) * 1e3)
+    ax2.plot(te, ee, color=C_CCA, lw=0.8)
+    ax2.set_xlabel("t (s)"); ax2.set_ylabel("reference − position (µm)"); ax2.grid(alpha=0.3)
+    many = len(lg.t_s) > 4000
+    return img(png_b64(fig), "log", f"The whole log ({len(lg.t_s):,} samples"
+               + ("; drawn as the minimum and maximum of every " f"{len(lg.t_s) // 2000} samples" if many else "")
+               + ") and its tracking error.")
+
+
+def _overlay(res):
+    """Every move overlaid: normalised response from the step, and the approach to the target with the band."""
+    tr, s = res.trace, res.summary
+    lg, mv, mc = tr.log, tr.moves, tr.move_cols
+    n = min(len(mv.lo), MAX_MOVES_SHOWN)
+    fig = new_figure(11, 3.6)
+    ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+    from matplotlib.collections import LineCollection
+    cmap = __import__("matplotlib").colormaps["viridis"]
+    set_ = np.asarray(mc["settling_time_s"][:n])
+    t_show = 1.3 * float(np.nanmax(set_)) if np.any(np.isfinite(set_)) else np.inf
+    left, right, colours = [], [], []
+    for k in range(n):
+        w = slice(int(mv.lo[k]), int(mv.hi[k]) + 1)
+        t = lg.t_s[w] - lg.t_s[mv.end[k]]
+        start, stroke = mc["start_mm"][k], mc["stroke_mm"][k]
+        d = max(1, len(t) // 300)                            # at most ~300 points per move on the left
+        left.append(np.column_stack((t[::d] * 1e3, (lg.pos_mm[w][::d] - start) / stroke)))
+        near = t <= t_show                                   # the approach: full resolution up to the settling
+        right.append(np.column_stack((t[near] * 1e3, (lg.pos_mm[w][near] - (start + stroke)) * 1e3 * np.sign(stroke))))
+        colours.append(cmap(k / max(n - 1, 1)))
+    ax1.add_collection(LineCollection(left, colors=colours, linewidths=0.8, alpha=0.7))
+    ax2.add_collection(LineCollection(right, colors=colours, linewidths=0.8, alpha=0.7))
+    ax1.autoscale_view()
+    ax2.autoscale_view()
+    bands = mc["settle_band_um"][:n]
+    ax1.axhline(1.0, color=C_REF, lw=0.8, ls="--")
+    ax1.set_xlabel("t − step of the reference (ms)"); ax1.set_ylabel("(position − start) / stroke")
+    ax1.set_title(f"{n} move(s) overlaid (colour: order in the log)", fontsize=10)
+    b = float(np.max(bands))
+    ax2.axhspan(-b, b, color="#cfe8cf", alpha=0.7, lw=0)
+    if np.isfinite(t_show):
+        ax2.set_xlim(-0.05 * t_show * 1e3, t_show * 1e3)
+    ax2.set_ylim(-8 * b, 8 * b)
+    ax2.set_xlabel("t − step of the reference (ms)"); ax2.set_ylabel("(position − target) × direction (µm)")
+    ax2.set_title(f"approach to the target, ±{b:.3g} µm band (green)", fontsize=10)
+    for ax in (ax1, ax2):
+        ax.grid(alpha=0.3)
+    return img(png_b64(fig), "moves overlaid", "One curve per move, aligned at the reference's step: left the "
+               "normalised response, right the approach to the target (past the target is up)"
+               + (f"; the first {n} of {len(mv.lo)} moves" if n < len(mv.lo) else "") + ".")
+
+
+def _trace_parts(res):
+    s, tr = res.summary, res.trace
+    lg = tr.log
+    rows = [["log", f"{s['n_samples']:,} samples, columns {esc(', '.join(lg.columns))} (time in {esc(s['time_unit'])}, "
+                    f"positions in {esc(s['pos_unit'])})"],
+            ["sample step (median)", num(s["ts_s"] * 1e3, "ms")], ["duration", num(s["duration_s"], "s")],
+            ["kind", esc("moves (cut at the reference's steps)" if tr.kind == "moves" else "sinusoidal tracking")]]
+    parts = []
+    if tr.kind == "moves":
+        band = (f"±{s['settle_band_um']:g} µm" if np.isfinite(s["settle_band_um"])
+                else f"±{s['settle_band_pct']:g} % of each stroke")
+        rows += [["moves", f"{s['n_moves']} ({s['n_settled']} settle within the log)"
+                  + ("; the log ends while the reference moves (that move is not measured)" if s["log_ends_moving"] else "")],
+                 ["settling band", band], ["MAE / STD over the moves", f"{num(s['mae_um'], 'µm')} / {num(s['std_um'], 'µm')}"]]
+        parts.append(table(["quantity", "value"], rows))
+        stats = []
+        for key, label, scale, unit in (("rise_time", "rise time 10–90 %", 1e3, "ms"),
+                                        ("settling_time", f"settling time ({band})", 1e3, "ms"),
+                                        ("overshoot", "overshoot", 1.0, "µm"), ("overshoot", "overshoot", 1.0, "%"),
+                                        ("steady_state_error", "steady-state error", 1.0, "µm")):
+            u = "s" if unit == "ms" else ("pct" if unit == "%" else "um")
+            stats.append([f"{label} ({unit})"] + [num(s[f"{key}_{st}_{u}"] * scale, "") for st in
+                                                  ("mean", "std", "median", "min", "max")] + [str(s[f"{key}_n"])])
+        parts.append("<h2>Statistics over the moves</h2>" + table(["metric", "mean", "STD", "median", "min", "max",
+                                                                   "moves"], stats))
+        parts.append(_overlay(res))
+        mc = tr.move_cols
+        n = min(len(mc["move"]), MAX_MOVES_SHOWN)
+        mrows = [[str(int(mc["move"][k])), num(mc["t_end_s"][k], ""), num(mc["stroke_mm"][k], ""),
+                  _ms(mc["rise_time_s"][k]), _ms(mc["settling_time_s"][k]), num(mc["overshoot_um"][k], ""),
+                  num(mc["overshoot_pct"][k], ""), num(mc["steady_state_error_um"][k], ""), num(mc["mae_um"][k], "")]
+                 for k in range(n)]
+        parts.append("<h2>Moves</h2><p>Rise time: 10 % to 90 % of the stroke. Settling: from the reference's step "
+                     "(the end of its move) until the position stays in the band. Overshoot: largest excursion "
+                     "past the target. Steady-state error: mean of reference − position over the last 20 % of the "
+                     "hold." + (f" The first {n} of {len(mc['move'])} moves; all are in moves.csv." if n < len(mc["move"]) else "")
+                     + "</p>" + table(["move", "step at (s)", "stroke (mm)", "rise", "settling", "overshoot (µm)",
+                                       "overshoot (%)", "steady-state error (µm)", "MAE (µm)"], mrows))
+    else:
+        rows += [["frequency", num(s["frequency_hz"], "Hz")], ["reference amplitude", num(s["amplitude_mm"], "mm")],
+                 ["gain (position / reference amplitude)", f"{s['gain']:.5f}"],
+                 ["phase lag", f"{s['phase_lag_deg']:.3f}° = {num(s['phase_lag_s'] * 1e3, 'ms')}"],
+                 ["MAE / STD of reference − position (whole periods)", f"{num(s['mae_um'], 'µm')} / {num(s['std_um'], 'µm')}"]]
+        parts.append(table(["quantity", "value"], rows))
+    parts.append(_overview(res))
     return parts
 
 
@@ -267,5 +380,7 @@ def servo_report_html(res: ServoResult) -> str:
     files = [("metrics.csv", "case,controller,amplitude_mm,frequency_hz,settling_time_s,overshoot_um,mae_um,std_um"),
              ("traces.csv", "case,controller,amplitude_mm,frequency_hz,t_s,ref_mm,pos_mm,err_um (decimated)"),
              ("summary.json", "flat summary (written last)")]
-    title = "markcal servo: composite controller vs baseline" if res.mode == "simulation" else "markcal servo: measured trace"
-    return page(title, parts + [data_files_footer(files)], source=res.source)
+    if res.trace is not None and res.trace.kind == "moves":
+        files.insert(2, ("moves.csv", ",".join(MOVE_COLUMNS)))
+    title = "markcal servo: composite controller vs baseline" if res.mode == "simulation" else "markcal servo: drive log"
+    return page(title, parts + [data_files_footer(files)], source=res.source, summary=res.summary)

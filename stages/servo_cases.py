@@ -14,7 +14,7 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_control import PIDGains, RepetitiveParams, StabilityCheck, check_rc_stability
 from markcal.stages.servo_plant import PlantParams, discretise
 from markcal.stages.servo_reading import DEFAULT_READING, Reading, reading_params, settle_band_um
-from markcal.stages.servo_sim import SimResult, step_metrics, tracking_metrics
+from markcal.stages.servo_sim import SimResult
 
 
 #: the paper's reported reductions (%), simulation, Tables 1-2 (10 mm move; 10 mm sine)
@@ -160,27 +160,3 @@ def dominant_frequency_hz(t_s: np.ndarray, x: np.ndarray) -> float:
         den = a - 2 * b + c
         k = k + (0.5 * (a - c) / den if den != 0 else 0.0)
     return float(k * (fr[1] - fr[0]))
-
-
-def trace_run(t_s, ref_mm, pos_mm, band_um: float = 1.0) -> Run:
-    """Metrics of a measured trace.
-
-    A trace whose reference holds still over its last 10 % is a move: settling
-    time from the last change of the reference, overshoot past the final
-    reference. Otherwise it is tracking: amplitude = half the reference range,
-    frequency = the strongest FFT line. MAE and STD are over the whole trace.
-    """
-    n = len(t_s)
-    tail = ref_mm[int(0.9 * n):]
-    moving = np.abs(np.diff(ref_mm)) > 1e-9
-    err = ref_mm - pos_mm
-    mae, std = tracking_metrics(err)
-    sim = SimResult(t_s=t_s, ref_mm=ref_mm, pos_mm=pos_mm, u_v=np.full(n, np.nan), err_mm=err)
-    if np.ptp(tail) <= 1e-9 and np.any(moving):
-        k_end = int(np.flatnonzero(moving)[-1]) + 1
-        t_end = float(t_s[k_end])
-        m = step_metrics(t_s, ref_mm, pos_mm, t_end, band_um)
-        return Run("trace", "measured", float(abs(ref_mm[-1] - ref_mm[0])), float("nan"), m.settling_time_s,
-                   m.overshoot_um, mae, std, sim, slice(None), t_end)
-    freq = dominant_frequency_hz(t_s, ref_mm)
-    return Run("trace", "measured", float(0.5 * np.ptp(ref_mm)), freq, float("nan"), float("nan"), mae, std, sim)

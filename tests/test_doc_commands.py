@@ -24,7 +24,7 @@ def commands(path: Path) -> list:
     text = path.read_text(encoding="utf-8").split("<!-- end of the commands the tests run -->")[0]
     out = []
     for block in re.findall(r"```sh\n(.*?)```", text, re.S):
-        for line in block.splitlines():
+        for line in block.replace("\\\n", " ").splitlines():
             words = shlex.split(line, comments=True)
             if words and words[0] == "markcal":
                 out.append(words)

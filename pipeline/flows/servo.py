@@ -5,7 +5,8 @@ Paper 003 (Zhou, Gao & Zhang, Actuators 2024): reduced second-order stage model
 for point-to-point moves (Fig. 4), feed-forward + gain-scheduled PID + plug-in
 repetitive control for sinusoidal tracking (Fig. 7), simulated against the
 baseline (feed-forward + PID) with the paper's simulation parameters (sec. 5).
-Also computes the same metrics for a measured encoder trace (t_s, ref_mm, pos_mm).
+Also measures drive logs (CSV/TSV/whitespace; time, reference, position columns): cut into moves at
+the reference's steps with per-move metrics and statistics, or sinusoidal tracking with the phase lag.
 """
 from __future__ import annotations
 
@@ -15,17 +16,19 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
-from markcal.pipeline.tables import check_increasing, read_table
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_cases import (PAPER_RC_M, Run, ServoConfig, band_um, choose_rc, find_run, sim_model,
-                                        trace_run, validate_config)
+                                        validate_config)
 from markcal.stages.servo_control import tracking_differentiator
 from markcal.stages.servo_reading import NAMED_READINGS, baseline_rows, reference_end_s, score_rows
 from markcal.stages.servo_control import RepetitiveParams, StabilityCheck
 from markcal.stages.servo_plant import discretise
 from markcal.stages.servo_profile import s_curve, sinusoid
-from markcal.stages.servo_sim import BASELINE, CCA_STEP, CCA_TRACK, simulate, step_metrics, tracking_metrics
+from markcal.stages.servo_log import (DriveLog, Moves, SineMetrics, check_log, find_moves, move_metrics,
+                                     move_statistics, read_log, sine_metrics, sniff_layout)
+from markcal.stages.servo_sim import (BASELINE, CCA_STEP, CCA_TRACK, SimResult, simulate, step_metrics,
+                                      tracking_metrics)
 from markcal.stages.stats import reduction_pct
 
 METRIC_COLUMNS = ("case", "controller", "amplitude_mm", "frequency_hz", "settling_time_s",
@@ -45,6 +48,7 @@ class ServoResult:
     stability_paper_m: StabilityCheck | None
     summary: dict
     readings: tuple = ()          # (name, Reading, baseline rows, score) of the named readings
+    trace: "TraceAnalysis | None" = None   # trace mode: the log and its moves / tracking metrics
 
 
 def _step_run(cfg, dp, gains, stroke, ctrl):
@@ -144,62 +148,128 @@ def _sim_summary(cfg, runs, rc, check, paper) -> dict:
     return s
 
 
-# ---------------------------------------------------------------- measured traces
+# ---------------------------------------------------------------- measured traces / drive logs
 
-def read_trace(path) -> dict:
-    """Read a measured encoder trace CSV ``t_s,ref_mm,pos_mm`` (header required).
+#: options of ``markcal servo --trace`` (and of ``[servo]`` in batch.toml)
+TRACE_OPTIONS = {"settle_band_um": 1.0, "settle_band_pct": 0.0, "time_col": "t_s", "ref_col": "ref_mm",
+                 "pos_col": "pos_mm", "time_unit": "s", "pos_unit": "mm", "counts_per_mm": 0.0, "no_report": False}
 
-    Refused: missing columns, fewer than 20 rows, non-numbers, time not
-    strictly increasing, or gaps (a step longer than 1.5 x the median step).
+
+@dataclass(frozen=True)
+class TraceAnalysis:
+    """A drive log and what was measured on it (moves or sinusoidal tracking)."""
+
+    log: DriveLog
+    kind: str                          # moves | tracking
+    moves: Moves | None
+    move_cols: dict | None             # per-move metrics, ``MOVE_COLUMNS``
+    sine: SineMetrics | None
+
+
+def read_trace(path, options: dict | None = None) -> DriveLog:
+    """Read and check a drive log with the trace options (columns, units); see :func:`read_log`.
+
+    Refused: a missing or non-numeric column, fewer than 20 rows, time out of
+    order or repeated, gaps over 10 samples, a reference that never moves.
     """
-    path = os.fspath(path)
-    cols = read_table(path, ("t_s", "ref_mm", "pos_mm"))
-    if len(cols["t_s"]) < 20:
-        raise MarkcalError(f"trace has {len(cols['t_s'])} rows; need at least 20", path)
-    check_increasing(cols["t_s"], "t_s", path)
-    dt = np.diff(cols["t_s"])
-    med = float(np.median(dt))
-    if np.any(dt > 1.5 * med):
-        i = int(np.flatnonzero(dt > 1.5 * med)[0])
-        raise MarkcalError(f"gap in the trace at line {i + 3}: step {dt[i]:.6g} s against the median "
-                           f"{med:.6g} s (samples missing)", path)
-    return cols
+    o = {**TRACE_OPTIONS, **(options or {})}
+    log = read_log(path, o["time_col"], o["ref_col"], o["pos_col"], o["time_unit"], o["pos_unit"],
+                   float(o["counts_per_mm"]))
+    check_log(log, os.fspath(path))
+    return log
 
 
-def run_servo_trace(path, band_um: float = 1.0, progress=None) -> ServoResult:
-    """Compute the servo metrics of a measured encoder trace file."""
+def _band(options) -> tuple:
+    um, pct = float(options["settle_band_um"]), float(options["settle_band_pct"])
+    if pct:
+        if not (0 < pct < 100):
+            raise MarkcalError(f"settle_band_pct must be in (0, 100) (got {pct:g})")
+        return None, pct
+    if not um > 0:
+        raise MarkcalError(f"settle_band_um must be positive (got {um:g})")
+    return um, None
+
+
+def run_servo_trace(path, options: dict | None = None, progress=None) -> ServoResult:
+    """Metrics of a measured drive log: per move (and statistics over them), or sinusoidal tracking."""
     say = progress or (lambda msg: None)
+    o = {**TRACE_OPTIONS, **(options or {})}
+    abs_um, band_pct = _band(o)
     t0 = time.perf_counter()
-    cols = read_trace(path)
-    say(f"read {len(cols['t_s']):,} samples")
-    r = trace_run(cols["t_s"], cols["ref_mm"], cols["pos_mm"], band_um)
-    summary = {"kind": "servo", "mode": "trace", "n_samples": int(len(cols["t_s"])),
-               "ts_s": float(np.median(np.diff(cols["t_s"]))), "duration_s": float(cols["t_s"][-1] - cols["t_s"][0]),
-               "trace_kind": "move" if np.isfinite(r.t_end_s) else "tracking",
-               "amplitude_mm": r.amplitude_mm, "frequency_hz": r.frequency_hz,
-               "settling_time_s": r.settling_time_s, "overshoot_um": r.overshoot_um,
-               "mae_um": r.mae_um, "std_um": r.std_um, "settle_band_um": band_um,
-               "runtime_s": time.perf_counter() - t0, "source": os.fspath(path)}
-    return ServoResult(os.fspath(path), "trace", None, [r], None, None, None, summary)
+    path = os.fspath(path)
+    log = read_trace(path, o)
+    t, ref, pos = log.t_s, log.ref_mm, log.pos_mm
+    say(f"read {len(t):,} samples ({', '.join(log.columns)})")
+    mv = find_moves(ref)
+    n = len(t)
+    summary = {"kind": "servo", "mode": "trace", "n_samples": int(n), "ts_s": float(np.median(np.diff(t))),
+               "duration_s": float(t[-1] - t[0]), "time_col": log.columns[0], "ref_col": log.columns[1],
+               "pos_col": log.columns[2], "time_unit": o["time_unit"], "pos_unit": o["pos_unit"]}
+    err = ref - pos
+    if len(mv.lo) and mv.hold_fraction >= 0.2:
+        cols = move_metrics(t, ref, pos, mv, abs_um, band_pct)
+        say(f"{len(mv.lo)} moves cut at the reference's steps")
+        runs = [Run("trace", "measured", float(abs(cols["stroke_mm"][k])), float("nan"),
+                    float(cols["settling_time_s"][k]), float(cols["overshoot_um"][k]), float(cols["mae_um"][k]),
+                    float(cols["std_um"][k]),
+                    SimResult(t, ref, pos, np.empty(0), err), slice(mv.lo[k], mv.hi[k] + 1), float(cols["t_end_s"][k]))
+                for k in range(len(mv.lo))]
+        st = move_statistics(cols)
+        settle = np.asarray(cols["settling_time_s"])
+        summary.update({
+            "trace_kind": "move", "n_moves": len(mv.lo), "n_settled": int(np.sum(np.isfinite(settle))),
+            "log_ends_moving": mv.dropped_tail,
+            "amplitude_mm": float(np.median(np.abs(cols["stroke_mm"]))), "frequency_hz": float("nan"),
+            # worst move (what a tolerance judges): NaN settling when a move never settles
+            "settling_time_s": float(np.max(settle)) if np.all(np.isfinite(settle)) else float("nan"),
+            "overshoot_um": float(np.max(cols["overshoot_um"])),
+            "overshoot_pct": float(np.max(cols["overshoot_pct"])),
+            "rise_time_s": float(np.nanmax(cols["rise_time_s"])) if np.any(np.isfinite(cols["rise_time_s"]))
+            else float("nan"),
+            "steady_state_error_um": float(cols["steady_state_error_um"][np.argmax(np.abs(cols["steady_state_error_um"]))]),
+            **st, "phase_lag_deg": float("nan"), "phase_lag_s": float("nan"), "gain": float("nan")})
+        sw = slice(int(mv.lo[0]), int(mv.hi[-1]) + 1)
+        mae, std = tracking_metrics(err[sw])
+        analysis = TraceAnalysis(log, "moves", mv, cols, None)
+    else:
+        sm = sine_metrics(t, ref, pos)
+        say(f"tracking log: {sm.frequency_hz:.4g} Hz, phase lag {sm.phase_lag_deg:.3f} deg")
+        mae, std = sm.mae_um, sm.std_um
+        runs = [Run("trace", "measured", sm.amplitude_mm, sm.frequency_hz, float("nan"), float("nan"), mae, std,
+                    SimResult(t, ref, pos, np.empty(0), err), sm.window)]
+        summary.update({"trace_kind": "tracking", "n_moves": 0, "amplitude_mm": sm.amplitude_mm,
+                        "frequency_hz": sm.frequency_hz, "settling_time_s": float("nan"),
+                        "overshoot_um": float("nan"), "phase_lag_deg": sm.phase_lag_deg,
+                        "phase_lag_s": sm.phase_lag_s, "gain": sm.gain})
+        analysis = TraceAnalysis(log, "tracking", None, None, sm)
+    summary.update({"mae_um": mae, "std_um": std,
+                    "settle_band_um": abs_um if band_pct is None else float("nan"),
+                    "settle_band_pct": band_pct if band_pct is not None else float("nan"),
+                    "runtime_s": time.perf_counter() - t0, "source": path})
+    return ServoResult(path, "trace", None, runs, None, None, None, summary, trace=analysis)
 
 
 def _claims(path) -> bool:
-    return file_ext(path) == ".csv" and {"t_s", "ref_mm", "pos_mm"} <= set(csv_header(path))
+    if file_ext(path) not in (".csv", ".tsv", ".txt", ".log", ".dat"):
+        return False
+    try:
+        lay = sniff_layout(path)
+    except MarkcalError:
+        return False
+    return {"t_s", "ref_mm", "pos_mm"} <= {h.lower() for h in lay.header}
 
 
 def _run_trace(path, spec, options, progress=None) -> ServoResult:
-    band = float(options["settle_band_um"])
-    if not band > 0:
-        raise MarkcalError(f"settle_band_um must be positive (got {band})")
-    return run_servo_trace(path, band_um=band, progress=progress)
+    return run_servo_trace(path, options, progress=progress)
 
 
 FLOW = FlowDescriptor(
-    name="servo", help="macro-stage servo: composite controller vs baseline, or a measured trace",
+    name="servo", help="macro-stage servo: composite controller vs baseline, or a measured drive log",
     claims=_claims, run=_run_trace,
-    options={"settle_band_um": 1.0, "no_report": False},
+    options=dict(TRACE_OPTIONS),
     key_figures=(Figure("trace_kind", "trace kind"), Figure("mae_um", "servo mean absolute tracking error", "µm"),
-                 Figure("std_um", "tracking error STD", "µm"), Figure("settling_time_s", "settling time", "s"),
-                 Figure("overshoot_um", "overshoot", "µm")),
+                 Figure("std_um", "tracking error STD", "µm"), Figure("settling_time_s", "settling time (worst move)", "s"),
+                 Figure("overshoot_um", "overshoot (worst move)", "µm"), Figure("n_moves", "moves"),
+                 Figure("phase_lag_deg", "phase lag", "°")),
     tolerances={"max_overshoot_um": 6.0},
     trends=("mae_um",), cost=0.5)
