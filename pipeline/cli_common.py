@@ -21,7 +21,9 @@ class Parser(argparse.ArgumentParser):
         super().__init__(*args, **kwargs)
 
     def add_argument(self, *args, **kwargs):
-        """As argparse's; an option with a default but no help still shows its default."""
+        """As argparse's; ``--out`` also answers to ``-o``; an option with a default but no help shows its default."""
+        if args == ("--out",):
+            args = ("-o", "--out")
         d = kwargs.get("default")
         if not kwargs.get("help") and not (d is None or d is False or d is argparse.SUPPRESS) \
                 and args and args[0].startswith("-"):

@@ -101,3 +101,15 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         main(["--version"])
     assert e.value.code == 0 and capsys.readouterr().out.startswith("markcal ")
+
+
+def test_out_has_a_short_form(session, tmp_path):
+    assert main(["selfcal", str(session), "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    assert (tmp_path / "o" / "summary.json").exists()
+
+
+def test_help_shows_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["render", "grid", "--help"])
+    out = capsys.readouterr().out
+    assert "--rows ROWS" in out and "default: 9" in out and "-o OUT, --out OUT" in out
