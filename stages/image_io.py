@@ -163,12 +163,25 @@ def _single_channel(name, channel):
         pick_channel([Channel(name, None, None)], channel)
 
 
+#: the largest image (pixels) read: 40000² float64 is 12.8 GB; markcal holds a few float64 copies
+MAX_IMAGE_PIXELS = 200_000_000
+
+
+def check_image_size(shape, path=None) -> None:
+    """Refuse an image whose declared size would not fit in memory, before it is decoded."""
+    n = int(np.prod([int(v) for v in shape])) if len(shape) else 0
+    if n > MAX_IMAGE_PIXELS:
+        raise MarkcalError(f"image declares {' x '.join(str(int(v)) for v in shape)} = {n:,} values; at most "
+                           f"{MAX_IMAGE_PIXELS:,} are read (a few float64 copies must fit in memory)", path)
+
+
 def _read_tiff(path, channel=None):
     import tifffile
     with tifffile.TiffFile(path) as tf:
         if is_jpk(tf):
             return _spm(path, "jpk", channel)
         page = tf.pages[0]
+        check_image_size(page.shape, path)
         arr = page.asarray()
         ij = tf.imagej_metadata or {}
         ome = tf.ome_metadata

@@ -49,3 +49,21 @@ def test_batch_nan_tolerance_refused(tmp_path, capsys):
     assert main(["batch", str(d), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"]) == 1
     err = _err(capsys)
     assert len(err) == 1 and "finite number" in err[0], err
+
+
+def test_huge_declared_tiff_refused_before_decoding(tmp_path, capsys):
+    import numpy as np
+    import tifffile
+    p = tmp_path / "huge.tif"
+    # 16000 x 16000 float32 of zeros, deflate: a few hundred kB on disk, 1 GB decoded; the budget is lowered
+    # for the test by monkeypatching the limit instead of writing a 60000² file
+    tifffile.imwrite(p, np.zeros((2000, 2000), np.float32), compression="zlib")
+    from markcal.stages import image_io
+    old = image_io.MAX_IMAGE_PIXELS
+    image_io.MAX_IMAGE_PIXELS = 1_000_000
+    try:
+        assert main(["indents", str(p), "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    finally:
+        image_io.MAX_IMAGE_PIXELS = old
+    err = _err(capsys)
+    assert len(err) == 1 and "2000 x 2000" in err[0] and "at most" in err[0], err
