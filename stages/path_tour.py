@@ -14,8 +14,9 @@ neighbours by alpha-nearness on a minimum spanning tree (as in LKH: they join
 clusters, which nearest neighbours do not), 2-opt, Or-opt (runs of 1-3
 strokes, either way round) and a variable-depth Lin-Kernighan step, with
 don't-look bits (a queue of active cities); then an iterated local search:
-segment-swap kicks (the double bridge of Chained Lin-Kernighan, kept local)
-each repaired by the same local search and kept only if the tour got shorter.
+double-bridge kicks (two neighbouring runs of strokes swapped, as in Chained
+Lin-Kernighan) each repaired by the same local search and kept unless the tour
+got longer.
 Closed contours are re-entered at their best vertex between rounds. The
 number of kicks is fixed by the options, never by a clock, so a seed gives
 the same tour on any machine.
@@ -29,7 +30,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .path_job import CONTOUR, POLYLINE, Job, Timing, Tour, endpoints, tour_cost, tour_points
-from .path_tour_moves import _lk_work, alpha_candidates, nearest_neighbour_picks, optimise
+from .path_tour_moves import alpha_candidates, lk_work, nearest_neighbour_picks, optimise
 
 __all__ = ["LocalSearchOptions", "nearest_neighbour_tour", "raster_tour", "best_entries", "local_search",
            "population_arrays", "population_points", "population_cost"]
@@ -263,7 +264,7 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
         cities = cities.copy()
         depth = max(1, opt.lk_depth)
         optimise(np.ascontiguousarray(xy), cities, neigh, a_, b_, n_kicks // rounds, int(rng.integers(2**31)),
-                 opt.max_kick_strokes, 3, _lk_work(depth), depth, *opt.lk_breadth)
+                 opt.max_kick_strokes, 3, lk_work(depth), depth, *opt.lk_breadth)
         entry_of = {int(s): int(e) for s, e in zip(cur.order, cur.entry)}
         new = best_entries(job, _from_cities(job, cities, entry_of), timing, rounds=opt.entry_rounds)
         if tour_cost(job, new, timing) <= tour_cost(job, cur, timing) + 1e-12:

@@ -267,7 +267,7 @@ def _lk_alternatives(xy, tour, pos, n, neigh, a, b, t1, t2, G, depth, breadth, a
 def _try_lk(xy, tour, pos, n, neigh, a, b, t1, ws, touched, max_depth, br1, br2):
     """Variable-depth LK step from t1 (sequential 2-opt flips); returns the gain kept and fills touched.
 
-    ``ws``: work arrays (alt, alt_g, chain, flips, cnt, idx, t2s, gains) from :func:`_lk_work`.
+    ``ws``: work arrays (alt, alt_g, chain, flips, cnt, idx, t2s, gains) from :func:`lk_work`.
     """
     alt, alt_g, chain, flips, cnt, idx, t2s, gains = ws
     t2, _ = _jn(tour, pos, n, t1)
@@ -338,7 +338,7 @@ def _try_lk(xy, tour, pos, n, neigh, a, b, t1, ws, touched, max_depth, br1, br2)
         _reverse(tour, pos, n, flips[nf, 0], flips[nf, 1])
 
 
-def _lk_work(max_depth: int):
+def lk_work(max_depth: int):
     """Work arrays of :func:`_try_lk`."""
     d = max_depth + 1
     return (np.zeros((d, 5, 2), np.int64), np.zeros((d, 5)), np.zeros((d, 2), np.int64),

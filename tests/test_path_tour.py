@@ -117,7 +117,7 @@ def test_alpha_candidates_match_brute_force():
         assert np.allclose(np.sort(alpha[i, cand[i]]), np.sort(alpha[i, want]), atol=1e-9)
 
 
-def test_same_seed_same_tour_and_seed_matters_not_for_quality():
+def test_same_seed_same_tour_other_seed_as_good():
     p = board_units(clustered_points(9, 300, clusters=6))
     a = solve(p, seed=3)
     b = solve(p, seed=3)
