@@ -44,7 +44,8 @@ class LocalSearchOptions:
     cities above. ``lk_depth``: the longest Lin-Kernighan chain (1: 2-opt and Or-opt only).
     ``kicks_per_stroke`` x n kicks (at least ``min_kicks``, at most ``max_kicks``) of the iterated
     local search; each swaps two neighbouring runs of 1..``max_kick_strokes`` strokes (capped at
-    half the tour). ``lk_breadth``: alternatives tried at the first two levels of a chain.
+    half the tour) and shuffles ``shuffle_strokes`` neighbouring strokes elsewhere (order and
+    directions; 0: no shuffle). ``lk_breadth``: alternatives tried at the first two levels of a chain.
     """
 
     neighbours: int = 10
@@ -55,6 +56,7 @@ class LocalSearchOptions:
     min_kicks: int = 2_000
     max_kicks: int = 100_000
     max_kick_strokes: int = 1_000_000
+    shuffle_strokes: int = 8
     entry_rounds: int = 3
     seed: int = 0
 
@@ -264,7 +266,7 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
         cities = cities.copy()
         depth = max(1, opt.lk_depth)
         optimise(np.ascontiguousarray(xy), cities, neigh, a_, b_, n_kicks // rounds, int(rng.integers(2**31)),
-                 opt.max_kick_strokes, 3, lk_work(depth), depth, *opt.lk_breadth)
+                 opt.max_kick_strokes, opt.shuffle_strokes, 3, lk_work(depth), depth, *opt.lk_breadth)
         entry_of = {int(s): int(e) for s, e in zip(cur.order, cur.entry)}
         new = best_entries(job, _from_cities(job, cities, entry_of), timing, rounds=opt.entry_rounds)
         if tour_cost(job, new, timing) <= tour_cost(job, cur, timing) + 1e-12:

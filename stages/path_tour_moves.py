@@ -13,8 +13,9 @@ cut jump edges.
   ``max_depth``), the best prefix of the chain kept; don't-look bits as a queue.
 - Kicks: a double bridge (two neighbouring runs of strokes swapped, either reversed; run
   lengths uniform up to ``max_kick_strokes``, by default up to half the tour, which on the
-  TSPLIB boards beat runs of at most 30-250 strokes), repaired by the local search and kept
-  unless the tour got longer.
+  TSPLIB boards beat runs of at most 30-250 strokes) plus a shuffle of a few neighbouring
+  strokes elsewhere (order and directions), repaired by the local search and kept unless the
+  tour got longer.
 """
 from __future__ import annotations
 
@@ -444,11 +445,51 @@ def _segment_kick(xy, tour, pos, n, saved, a, b, max_kick_strokes, ends):
 
 
 @njit(cache=True)
-def optimise(xy, tour, neigh, a, b, n_kicks, seed, max_kick_strokes, max_seg, ws, max_depth, br1, br2):
+def _shuffle_kick(xy, tour, pos, n, a, b, w, q, inq, state):
+    """Shuffle a window of w neighbouring strokes (random order and directions); queue its cities.
+
+    Returns the cost change.
+    """
+    x = np.random.randint(n)
+    if not _is_cut(tour, n, x):
+        x = (x + 1) % n
+    before = 0.0
+    for k in range(w + 1):
+        before += _c(xy, tour[(x + 2 * k) % n], tour[(x + 2 * k + 1) % n], a, b)
+    for k in range(w - 1, 0, -1):                   # Fisher-Yates on the strokes of the window
+        j = np.random.randint(k + 1)
+        pk = (x + 1 + 2 * k) % n
+        pj = (x + 1 + 2 * j) % n
+        for t in range(2):
+            u = tour[(pk + t) % n]
+            v = tour[(pj + t) % n]
+            tour[(pk + t) % n] = v
+            tour[(pj + t) % n] = u
+    for k in range(w):
+        p0 = (x + 1 + 2 * k) % n
+        p1 = (p0 + 1) % n
+        if np.random.random() < 0.5:
+            u = tour[p0]
+            tour[p0] = tour[p1]
+            tour[p1] = u
+        pos[tour[p0]] = p0
+        pos[tour[p1]] = p1
+    after = 0.0
+    for k in range(w + 1):
+        after += _c(xy, tour[(x + 2 * k) % n], tour[(x + 2 * k + 1) % n], a, b)
+    for k in range(2 * w + 2):
+        _push(q, inq, state, tour[(x + k) % n])
+    return after - before
+
+
+@njit(cache=True)
+def optimise(xy, tour, neigh, a, b, n_kicks, seed, max_kick_strokes, shuffle_strokes, max_seg, ws, max_depth, br1,
+             br2):
     """Local search to a local optimum, then ``n_kicks`` kicks each repaired by the local search.
 
-    A kick swaps two neighbouring runs of strokes (a double bridge); it is kept when the repaired
-    tour is not longer. Returns the kicks kept.
+    A kick swaps two neighbouring runs of strokes (a double bridge) and shuffles
+    ``shuffle_strokes`` strokes elsewhere; it is kept when the repaired tour is not longer.
+    Returns the kicks kept.
     """
     np.random.seed(seed)
     n = tour.shape[0]
@@ -474,6 +515,9 @@ def optimise(xy, tour, neigh, a, b, n_kicks, seed, max_kick_strokes, max_seg, ws
             if ends[m] < 0:
                 break
             _push(q, inq, state, ends[m])
+        w = min(shuffle_strokes, n // 2 - 2)
+        if w >= 2:
+            delta += _shuffle_kick(xy, tour, pos, n, a, b, w, q, inq, state)
         delta -= _run_queue(xy, tour, pos, neigh, a, b, q, inq, state, max_seg, ws, max_depth, br1, br2)
         if delta > _EPS:
             for k in range(n):
