@@ -162,7 +162,7 @@ def cli_timing(quick):
     with tempfile.TemporaryDirectory() as tmp:
         for name, p in cases:
             csv = Path(tmp) / "job.csv"
-            csv.write_text("x_mm,y_mm\n" + "".join(f"{x!r},{y!r}\n" for x, y in p))
+            csv.write_text("x_mm,y_mm\n" + "".join(f"{float(x)!r},{float(y)!r}\n" for x, y in p))
             ts = []
             for r in range(3):
                 t0 = time.perf_counter()

@@ -30,7 +30,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .path_job import CONTOUR, POLYLINE, Job, Timing, Tour, endpoints, tour_cost, tour_points
-from .path_tour_moves import alpha_candidates, lk_work, nearest_neighbour_picks, optimise
+from .path_tour_cand import alpha_candidates, nearest_neighbour_picks
+from .path_tour_moves import lk_work, optimise
 
 __all__ = ["LocalSearchOptions", "nearest_neighbour_tour", "raster_tour", "best_entries", "local_search",
            "population_arrays", "population_points", "population_cost"]

@@ -17,7 +17,7 @@ from markcal.fixtures.tsp_boards import clustered_points, drill_board, read_tspl
 from markcal.stages.errors import MarkcalError
 from markcal.stages.path_job import Timing, Tour, check_tour, make_job, tour_cost
 from markcal.stages.path_tour import LocalSearchOptions, local_search, nearest_neighbour_tour
-from markcal.stages.path_tour_moves import alpha_candidates
+from markcal.stages.path_tour_cand import alpha_candidates
 
 TM = Timing()
 GAP_MAX_PCT = 1.0
