@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import resource
 import statistics
 import subprocess
 import sys
@@ -163,14 +164,19 @@ def cli_timing(quick):
         for name, p in cases:
             csv = Path(tmp) / "job.csv"
             csv.write_text("x_mm,y_mm\n" + "".join(f"{float(x)!r},{float(y)!r}\n" for x, y in p))
-            ts = []
+            ts, cpu = [], []
             for r in range(3):
                 t0 = time.perf_counter()
+                c0 = resource.getrusage(resource.RUSAGE_CHILDREN)
                 subprocess.run([str(exe), "path", str(csv), "--out", str(Path(tmp) / f"o{r}"), "--method", "ls",
-                                "--no-report", "--quiet", "--kicks-per-stroke", kicks], check=True)
+                                "--no-report", "--quiet", "--kicks-per-stroke", kicks], check=True,
+                               stdout=subprocess.DEVNULL)
                 ts.append(time.perf_counter() - t0)
+                c1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+                cpu.append(c1.ru_utime + c1.ru_stime - c0.ru_utime - c0.ru_stime)
             goal = 2.0 + len(p) / 500.0
-            print(f"  {name:16s} n={len(p):5d}: {statistics.median(ts):.2f} s (goal {goal:.2f} s)")
+            print(f"  {name:16s} n={len(p):5d}: {statistics.median(ts):.2f} s wall, {statistics.median(cpu):.2f} s CPU "
+                  f"(goal {goal:.2f} s; load average {os.getloadavg()[0]:.1f})")
 
 
 def paper_ga(quick):

@@ -55,7 +55,7 @@ class LocalSearchOptions:
     lk_breadth: tuple = (5, 3)
     kicks_per_stroke: float = 5.0
     min_kicks: int = 2_000
-    max_kicks: int = 100_000
+    max_kicks: int = 10_000
     max_kick_strokes: int = 1_000_000
     shuffle_strokes: int = 8
     entry_rounds: int = 3
