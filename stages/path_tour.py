@@ -9,372 +9,57 @@ Reversing a run of whole strokes reverses their direction too, so plain
 2-opt on this array chooses the direction of open strokes for free. Moves
 only ever cut jump edges.
 
-Local search: 2-opt and Or-opt (segments of 1-3 strokes, either way round)
-with neighbour lists and don't-look bits (a queue of active cities), then an
-iterated local search: segment-swap kicks (the double bridge of Chained
-Lin-Kernighan, kept local) each repaired by the same local search and kept
-only if the tour got shorter. Closed contours are re-entered at their best
-vertex between rounds. The number of kicks is fixed by the options, never by
-a clock, so a seed gives the same tour on any machine.
+Local search (kernels in :mod:`markcal.stages.path_tour_moves`): candidate
+neighbours by alpha-nearness on a minimum spanning tree (as in LKH: they join
+clusters, which nearest neighbours do not), 2-opt, Or-opt (runs of 1-3
+strokes, either way round) and a variable-depth Lin-Kernighan step, with
+don't-look bits (a queue of active cities); then an iterated local search:
+double-bridge kicks (two neighbouring runs of strokes swapped, as in Chained
+Lin-Kernighan) each repaired by the same local search and kept unless the tour
+got longer.
+Closed contours are re-entered at their best vertex between rounds. The
+number of kicks is fixed by the options, never by a clock, so a seed gives
+the same tour on any machine.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from itertools import permutations, product
 
 import numpy as np
-from numba import njit
 from scipy.spatial import cKDTree
 
 from .path_job import CONTOUR, POLYLINE, Job, Timing, Tour, endpoints, tour_cost, tour_points
+from .path_tour_cand import alpha_candidates, nearest_neighbour_picks
+from .path_tour_moves import lk_work, optimise
 
 __all__ = ["LocalSearchOptions", "nearest_neighbour_tour", "raster_tour", "best_entries", "local_search",
            "population_arrays", "population_points", "population_cost"]
-
-_EPS = 1e-10
-
 
 @dataclass(frozen=True)
 class LocalSearchOptions:
     """Settings of :func:`local_search`.
 
+    ``neighbours`` candidate cities per city (each stroke has two: a point job's 10 are its 5
+    alpha-nearest points), alpha-nearness up to ``alpha_max_cities`` cities (O(N^2) time), nearest
+    cities above. ``lk_depth``: the longest Lin-Kernighan chain (1: 2-opt and Or-opt only).
     ``kicks_per_stroke`` x n kicks (at least ``min_kicks``, at most ``max_kicks``) of the iterated
-    local search; each swaps two runs of 1..``max_kick_strokes`` strokes.
+    local search; each swaps two neighbouring runs of 1..``max_kick_strokes`` strokes (capped at
+    half the tour) and shuffles ``shuffle_strokes`` neighbouring strokes elsewhere (order and
+    directions; 0: no shuffle). ``lk_breadth``: alternatives tried at the first two levels of a chain.
     """
 
     neighbours: int = 10
-    kicks_per_stroke: float = 50.0
-    min_kicks: int = 20_000
-    max_kicks: int = 200_000
-    max_kick_strokes: int = 30
+    alpha_max_cities: int = 16_000
+    lk_depth: int = 10
+    lk_breadth: tuple = (5, 3)
+    kicks_per_stroke: float = 5.0
+    min_kicks: int = 2_000
+    max_kicks: int = 10_000
+    max_kick_strokes: int = 1_000_000
+    shuffle_strokes: int = 8
     entry_rounds: int = 3
     seed: int = 0
-
-
-# ----------------------------------------------------------------------------- numba kernels
-
-@njit(cache=True)
-def _c(xy, i, j, a, b):
-    dx = xy[i, 0] - xy[j, 0]
-    dy = xy[i, 1] - xy[j, 1]
-    d = math.sqrt(dx * dx + dy * dy)
-    return a * d + (b if d > 0.0 else 0.0)
-
-
-@njit(cache=True)
-def _jn(tour, pos, n, c):
-    """Jump neighbour of city c and the direction (+1: it follows c, -1: it precedes c)."""
-    s = tour[(pos[c] + 1) % n]
-    if s == (c ^ 1):
-        return tour[(pos[c] - 1 + n) % n], -1
-    return s, 1
-
-
-@njit(cache=True)
-def _reverse(tour, pos, n, i, j):
-    """Reverse the cyclic run of positions i..j (or, equivalently, its complement)."""
-    L = (j - i + n) % n + 1
-    if 2 * L > n:
-        i, j = (j + 1) % n, (i - 1 + n) % n
-        L = n - L
-    for _ in range(L // 2):
-        ci = tour[i]
-        cj = tour[j]
-        tour[i] = cj
-        pos[cj] = i
-        tour[j] = ci
-        pos[ci] = j
-        i = (i + 1) % n
-        j = (j - 1 + n) % n
-
-
-@njit(cache=True)
-def _move2(tour, pos, n, a, b, c, d):
-    """2-opt: drop (a,b), (c,d) (b after a, d after c, same way round), add (a,c), (b,d)."""
-    if tour[(pos[a] + 1) % n] == b:
-        _reverse(tour, pos, n, pos[b], pos[c])
-    else:
-        _reverse(tour, pos, n, pos[c], pos[b])
-
-
-@njit(cache=True)
-def _or_move(tour, pos, n, i, L, j, first, buf):
-    """Move the run of L cities at positions i.. to between positions j and j+1.
-
-    ``first`` is the run's end city that must sit next to the city at j.
-    """
-    for t in range(L):
-        buf[t] = tour[(i + t) % n]
-    if buf[0] != first:
-        for t in range(L // 2):
-            x = buf[t]
-            buf[t] = buf[L - 1 - t]
-            buf[L - 1 - t] = x
-    mf = (j - (i + L) + 1 + 2 * n) % n
-    mb = n - L - mf
-    if mf <= mb:
-        for k in range(mf):
-            c = tour[(i + L + k) % n]
-            tour[(i + k) % n] = c
-            pos[c] = (i + k) % n
-        start = (i + mf) % n
-    else:
-        for k in range(mb):
-            src = (i - 1 - k + 2 * n) % n
-            dst = (src + L) % n
-            c = tour[src]
-            tour[dst] = c
-            pos[c] = dst
-        start = (i - mb + n) % n
-    for t in range(L):
-        p = (start + t) % n
-        tour[p] = buf[t]
-        pos[buf[t]] = p
-
-
-@njit(cache=True)
-def _push(q, inq, state, c):
-    if not inq[c]:
-        n = q.shape[0]
-        q[(state[0] + state[1]) % n] = c
-        state[1] += 1
-        inq[c] = True
-
-
-@njit(cache=True)
-def _try_2opt(xy, tour, pos, n, neigh, a, b, t1, touched):
-    t2, dr = _jn(tour, pos, n, t1)
-    d12 = _c(xy, t1, t2, a, b)
-    best = _EPS
-    b3 = -1
-    b4 = -1
-    for k in range(neigh.shape[1]):
-        t3 = neigh[t1, k]
-        d13 = _c(xy, t1, t3, a, b)
-        if d13 >= d12 - _EPS:
-            break
-        if dr == 1:
-            t4 = tour[(pos[t3] + 1) % n]
-        else:
-            t4 = tour[(pos[t3] - 1 + n) % n]
-        if t4 == (t3 ^ 1) or t3 == t2 or t4 == t1:
-            continue
-        g = d12 + _c(xy, t3, t4, a, b) - d13 - _c(xy, t2, t4, a, b)
-        if g > best:
-            best = g
-            b3 = t3
-            b4 = t4
-    if b3 < 0:
-        return 0.0
-    _move2(tour, pos, n, t1, t2, b3, b4)
-    touched[0] = t1
-    touched[1] = t2
-    touched[2] = b3
-    touched[3] = b4
-    return best
-
-
-@njit(cache=True)
-def _try_oropt(xy, tour, pos, n, neigh, a, b, t1, touched, buf, max_seg):
-    t2, dr = _jn(tour, pos, n, t1)
-    p = t1
-    s1 = t2
-    for k in range(1, max_seg + 1):
-        L = 2 * k
-        if L >= n - 4:
-            break
-        s2 = tour[(pos[s1] + dr * (L - 1) + 2 * n) % n]
-        nx = tour[(pos[s1] + dr * L + 2 * n) % n]
-        g1 = _c(xy, p, s1, a, b) + _c(xy, s2, nx, a, b) - _c(xy, p, nx, a, b)
-        if g1 <= _EPS:
-            continue
-        best = _EPS
-        bc = -1
-        bcn = -1
-        be = -1
-        for side in range(2):
-            e = s1 if side == 0 else s2
-            o = s2 if side == 0 else s1
-            for j in range(neigh.shape[1]):
-                c = neigh[e, j]
-                dec = _c(xy, e, c, a, b)
-                if dec >= g1 - _EPS:
-                    break
-                if ((pos[c] - pos[s1]) * dr + 2 * n) % n < L:
-                    continue
-                cn, _ = _jn(tour, pos, n, c)
-                if ((pos[cn] - pos[s1]) * dr + 2 * n) % n < L:
-                    continue
-                g = g1 - dec - _c(xy, o, cn, a, b) + _c(xy, c, cn, a, b)
-                if g > best:
-                    best = g
-                    bc = c
-                    bcn = cn
-                    be = e
-        if bc >= 0:
-            i0 = pos[s1] if dr == 1 else pos[s2]
-            if tour[(pos[bc] + 1) % n] == bcn:
-                left = bc
-                first = be
-            else:
-                left = bcn
-                first = s2 if be == s1 else s1
-            _or_move(tour, pos, n, i0, L, pos[left], first, buf)
-            touched[0] = p
-            touched[1] = nx
-            touched[2] = s1
-            touched[3] = s2
-            touched[4] = bc
-            touched[5] = bcn
-            return best
-    return 0.0
-
-
-@njit(cache=True)
-def _run_queue(xy, tour, pos, neigh, a, b, q, inq, state, max_seg):
-    """Process the don't-look-bit queue until empty; return the total gain."""
-    n = tour.shape[0]
-    touched = np.empty(6, np.int64)
-    buf = np.empty(2 * max_seg + 2, np.int64)
-    gain = 0.0
-    while state[1] > 0:
-        t1 = q[state[0]]
-        state[0] = (state[0] + 1) % n
-        state[1] -= 1
-        inq[t1] = False
-        g = _try_2opt(xy, tour, pos, n, neigh, a, b, t1, touched)
-        m = 4
-        if g <= 0.0:
-            g = _try_oropt(xy, tour, pos, n, neigh, a, b, t1, touched, buf, max_seg)
-            m = 6
-        if g > 0.0:
-            gain += g
-            for t in range(m):
-                c = touched[t]
-                _push(q, inq, state, c)
-                _push(q, inq, state, c ^ 1)
-    return gain
-
-
-@njit(cache=True)
-def _tour_cost(xy, tour, a, b):
-    n = tour.shape[0]
-    s = 0.0
-    for k in range(n):
-        i = tour[k]
-        j = tour[(k + 1) % n]
-        if j != (i ^ 1):
-            s += _c(xy, i, j, a, b)
-    return s
-
-
-@njit(cache=True)
-def _is_cut(tour, n, x):
-    return tour[(x + 1) % n] != (tour[x % n] ^ 1)
-
-
-@njit(cache=True)
-def _optimise(xy, tour, neigh, a, b, kick_r, max_seg):
-    """2-opt + Or-opt to a local optimum, then one local-search repair per kick.
-
-    ``kick_r`` (k, 5): uniform numbers in [0, 1) for the start and the two run lengths, the
-    longest run (strokes), and one more choosing plain swap / first run reversed / second reversed.
-    """
-    n = tour.shape[0]
-    pos = np.empty(n, np.int64)
-    for k in range(n):
-        pos[tour[k]] = k
-    q = np.empty(n, np.int64)
-    inq = np.zeros(n, np.bool_)
-    state = np.zeros(2, np.int64)
-    for k in range(n):
-        _push(q, inq, state, tour[k])
-    _run_queue(xy, tour, pos, neigh, a, b, q, inq, state, max_seg)
-    nstroke = n // 2
-    saved = tour.copy()
-    accepted = 0
-    for it in range(kick_r.shape[0]):
-        r0 = kick_r[it, 0]
-        r1 = kick_r[it, 1]
-        r2 = kick_r[it, 2]
-        lim = max(1, min(int(kick_r[it, 3]), (nstroke - 2) // 2))
-        x1 = int(r0 * n) % n
-        if not _is_cut(tour, n, x1):
-            x1 = (x1 + 1) % n
-        l1 = 1 + int(r1 * lim)
-        l2 = 1 + int(r2 * lim)
-        if 2 * (l1 + l2) >= n - 2:
-            continue
-        x2 = (x1 + 2 * l1) % n
-        x3 = (x2 + 2 * l2) % n
-        A = tour[x1]
-        B0 = tour[(x1 + 1) % n]
-        B1 = tour[x2]
-        C0 = tour[(x2 + 1) % n]
-        C1 = tour[x3]
-        D = tour[(x3 + 1) % n]
-        for k in range(n):
-            saved[k] = tour[k]
-        # rewrite positions x1+1 .. x3 as C then B, either of them possibly reversed
-        kind = int(kick_r[it, 4] * 3.0)
-        rc = kind == 1
-        rb = kind == 2
-        cf, cl = (C1, C0) if rc else (C0, C1)
-        bf, bl = (B1, B0) if rb else (B0, B1)
-        delta = (_c(xy, A, cf, a, b) + _c(xy, cl, bf, a, b) + _c(xy, bl, D, a, b)
-                 - _c(xy, A, B0, a, b) - _c(xy, B1, C0, a, b) - _c(xy, C1, D, a, b))
-        p = (x1 + 1) % n
-        for t in range(2 * l2):
-            c = saved[(x3 - t + n) % n] if rc else saved[(x2 + 1 + t) % n]
-            tour[p] = c
-            pos[c] = p
-            p = (p + 1) % n
-        for t in range(2 * l1):
-            c = saved[(x2 - t + n) % n] if rb else saved[(x1 + 1 + t) % n]
-            tour[p] = c
-            pos[c] = p
-            p = (p + 1) % n
-        for c in (A, B0, B1, C0, C1, D):
-            _push(q, inq, state, c)
-        delta -= _run_queue(xy, tour, pos, neigh, a, b, q, inq, state, max_seg)
-        if delta >= -_EPS:
-            for k in range(n):
-                c = saved[k]
-                tour[k] = c
-                pos[c] = k
-        else:
-            accepted += 1
-    return accepted
-
-
-@njit(cache=True)
-def _nearest_neighbour(cand_in, cand_out, owner, n_strokes, start):
-    """Greedy order: from the current exit, the nearest entry candidate of an unmarked stroke."""
-    m = cand_in.shape[0]
-    used = np.zeros(n_strokes, np.bool_)
-    picks = np.empty(n_strokes, np.int64)
-    cur = start
-    picks[0] = cur
-    used[owner[cur]] = True
-    for k in range(1, n_strokes):
-        x = cand_out[cur, 0]
-        y = cand_out[cur, 1]
-        best = 1e300
-        bi = -1
-        for j in range(m):
-            if used[owner[j]]:
-                continue
-            dx = cand_in[j, 0] - x
-            dy = cand_in[j, 1] - y
-            d = dx * dx + dy * dy
-            if d < best:
-                best = d
-                bi = j
-        picks[k] = bi
-        used[owner[bi]] = True
-        cur = bi
-    return picks
 
 
 # ----------------------------------------------------------------------------- conversions
@@ -406,7 +91,7 @@ def _from_cities(job: Job, cities: np.ndarray, entry_of: dict) -> Tour:
 
 
 def _neighbours(xy: np.ndarray, k: int) -> np.ndarray:
-    """k nearest cities of each city, nearest first, without itself and its partner."""
+    """k nearest cities of each city, nearest first, without itself and its partner (large jobs)."""
     n = len(xy)
     kk = min(k + 2, n)
     _, idx = cKDTree(xy).query(xy, k=kk)
@@ -456,7 +141,7 @@ def nearest_neighbour_tour(job: Job, start: int = 0) -> Tour:
     cout = np.ascontiguousarray(np.vstack(cout), float)
     own = np.array(own, np.int64)
     first = int(np.flatnonzero(own == start)[0])
-    picks = _nearest_neighbour(cin, cout, own, job.n, first)
+    picks = nearest_neighbour_picks(cin, cout, own, job.n, first)
     vtx = np.array(vtx, np.int64)
     rev = np.array(rev, bool)
     return Tour(own[picks], rev[picks], vtx[picks])
@@ -547,7 +232,7 @@ def n_kicks_for(n_strokes: int, opt: LocalSearchOptions) -> int:
 
 
 def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptions | None = None) -> Tour:
-    """Improve a tour: 2-opt, Or-opt, iterated kicks, contour entries.
+    """Improve a tour: 2-opt, Or-opt, Lin-Kernighan steps, iterated kicks, contour entries.
 
     Parameters
     ----------
@@ -575,12 +260,14 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
     rounds = max(1, opt.entry_rounds) if (job.kinds == CONTOUR).any() else 1
     for r in range(rounds):
         xy, cities = _cities(job, cur)
-        neigh = _neighbours(xy, opt.neighbours)
-        kicks = n_kicks // rounds
-        r = rng.random((kicks, 4))
-        kr = np.column_stack([r[:, :3], np.full(kicks, float(opt.max_kick_strokes)), r[:, 3]])
+        if len(xy) <= opt.alpha_max_cities:
+            neigh = alpha_candidates(np.ascontiguousarray(xy), a_, b_, opt.neighbours)
+        else:
+            neigh = _neighbours(xy, opt.neighbours)
         cities = cities.copy()
-        _optimise(np.ascontiguousarray(xy), cities, neigh, a_, b_, np.ascontiguousarray(kr), 3)
+        depth = max(1, opt.lk_depth)
+        optimise(np.ascontiguousarray(xy), cities, neigh, a_, b_, n_kicks // rounds, int(rng.integers(2**31)),
+                 opt.max_kick_strokes, opt.shuffle_strokes, 3, lk_work(depth), depth, *opt.lk_breadth)
         entry_of = {int(s): int(e) for s, e in zip(cur.order, cur.entry)}
         new = best_entries(job, _from_cities(job, cities, entry_of), timing, rounds=opt.entry_rounds)
         if tour_cost(job, new, timing) <= tour_cost(job, cur, timing) + 1e-12:
