@@ -84,7 +84,7 @@ def register(sub, render_sub) -> None:
     p.add_argument("--ga-max-strokes", type=int, default=None,
                    help="larger jobs fall back from the GA to local search")
     p.add_argument("--kicks-per-stroke", type=float, default=None,
-                   help="iterated local search: kicks per stroke (at least 20,000, at most 200,000 in all; 0: none)")
+                   help="iterated local search: kicks per stroke (default 5; at least 2,000, at most 10,000 in all; 0: none)")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_run_options(p)
