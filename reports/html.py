@@ -10,8 +10,6 @@ import html
 import io
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 __all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner"]
 
@@ -87,8 +85,10 @@ def nice_number(x: float) -> float:
     return float(10 ** k)
 
 
-def new_figure(w_in: float, h_in: float) -> Figure:
-    """A matplotlib Figure on an Agg canvas, ``w_in`` x ``h_in`` inches."""
+def new_figure(w_in: float, h_in: float):
+    """A matplotlib Figure on an Agg canvas, ``w_in`` x ``h_in`` inches (matplotlib loads on first use)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
     fig = Figure(figsize=(w_in, h_in), dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
