@@ -25,6 +25,9 @@ def cmd_scan(args) -> int:
         f"({s['orientation_method']}; galvo-model margin {s['orientation_margin'] or float('inf'):.2f})")
     say(f"{s['n_detected']}/{s['n_expected']} fiducials, deviation RMS {s['rms_mm']:.4f} mm, "
         f"max {s['max_mm']:.4f} mm; model {s['model']}, CV RMSE {s['cv_rmse_mm']:.4f} mm")
+    if s["orientation_method"].startswith("assumed"):
+        say("warning: orientation assumed upright (within 35 deg); the galvo field cannot tell quarter turns "
+            "apart, so a plate laid otherwise needs --rotation-hint-deg or an orientation mark")
     if res.missing_ids:
         say(f"not detected: ids {res.missing_ids}")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))

@@ -152,8 +152,9 @@ def choose(cands: list, mark_id: int | None = None, hint_deg: float | None = Non
         pool = [c for c in pool if not np.any(c.ids == mark_id)]
         method = "orientation mark"
         if not pool:
+            tried = "" if any(c.mirrored for c in cands) else " (mirrored orientations not tried: --mirror auto)"
             raise MarkcalError("the orientation mark (an unmarked grid site) was not found: that site holds "
-                               "a mark in every orientation; check [fiducial] orientation_mark")
+                               f"a mark in every orientation{tried}; check [fiducial] orientation_mark")
     if hint_deg is not None:
         near = [c for c in pool if _angle_diff_deg(c.rotation_deg, hint_deg) <= HINT_WINDOW_DEG]
         if not near:
