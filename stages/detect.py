@@ -35,6 +35,8 @@ def filter_raster(raster: Raster, median_px: int = 5) -> np.ndarray:
     (normalised convolution; 5 x 5 where that is empty too, else the plate's
     median), so rings keep their shape through the median filter.
     """
+    if raster.valid is None:
+        return cv2.medianBlur(np.ascontiguousarray(raster.intensity, np.float32), median_px)
     valid = raster.valid.astype(np.float32)
     img = np.where(raster.valid, raster.intensity, 0).astype(np.float32)
     out = img.copy()
@@ -156,15 +158,16 @@ def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float):
     cr = np.rint(raster.to_pixel(uv0_mm)).astype(int)
     rr = cr[:, 1, None, None] + offs[None, :, None]
     cc = cr[:, 0, None, None] + offs[None, None, :]
-    nrow, ncol = raster.valid.shape
+    nrow, ncol = raster.intensity.shape
     inb = (rr >= 0) & (rr < nrow) & (cc >= 0) & (cc < ncol)
     rr = np.clip(rr, 0, nrow - 1)
     cc = np.clip(cc, 0, ncol - 1)
     k = len(uv0_mm)
-    u = raster.u_mm[rr, cc].reshape(k, -1)
-    v = raster.v_mm[rr, cc].reshape(k, -1)
+    su, sv, sval = raster.samples(rr, cc)
+    u = np.broadcast_to(su, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
+    v = np.broadcast_to(sv, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
     i = raster.intensity[rr, cc].reshape(k, -1).astype(np.float64)
-    m = (raster.valid[rr, cc] & inb).reshape(k, -1)
+    m = (np.broadcast_to(sval, np.broadcast_shapes(rr.shape, cc.shape)) & inb).reshape(k, -1)
     u = np.where(m, u, 0.0)
     v = np.where(m, v, 0.0)
     i = np.where(m, i, 0.0)
@@ -268,6 +271,8 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         Nominal ring radii.
     """
     radii = tuple(float(r) for r in radii_mm)
+    # about 100 rings per batch at 0.1 mm cells; fewer on fine images (memory ~ rings x samples)
+    chunk = max(2, min(chunk, int(chunk * (raster.pixel_mm / 0.1) ** 2)))
     reach = max(radii) + 0.5
     inner = max(min(radii) - 0.5, 0.0)
     out = {k: [] for k in ("uv", "m", "w", "a", "rms", "n", "shift")}

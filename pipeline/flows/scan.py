@@ -18,6 +18,8 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.io import read_cloud
 from markcal.stages.plane import Plane, fit_plane, from_plane
 from markcal.stages.plate import PlateSpec, nominal_grid
+from markcal.stages.plate_image import (IMAGE_EXTS, check_image_size, coarse_raster, flat_plane, image_raster,
+                                        read_plate_image)
 from markcal.stages.project import Raster, project
 from markcal.stages.galvo_fit import KINDS, choose_model
 from markcal.stages.register import Rigid2D, lattice_coords, rigid_fit, robust_rigid_fit
@@ -49,6 +51,7 @@ class ScanOptions:
     rotation_hint_deg: float | None = None
     orientation: str = "upright"     # no hint, no mark: "upright" (within +-35 deg) or "auto" (galvo model)
     mirror: str = "no"               # the measurement seen from the back: "no", "yes", "auto"
+    pixel_size_mm: float | None = None   # images: overrides the file's resolution tags
 
 
 @dataclass(frozen=True)
@@ -106,6 +109,10 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     try:
+        if file_ext(cloud_path) in IMAGE_EXTS:
+            say("reading image")
+            image = read_plate_image(cloud_path, opt.pixel_size_mm)
+            return _run_image(image, str(cloud_path), spec, opt, say, t0)
         say("reading cloud")
         cloud = read_cloud(cloud_path)
         return _run(cloud, str(cloud_path), spec, opt, say, t0)
@@ -113,19 +120,20 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
         raise exc.with_path(cloud_path) from None
 
 
-def _detect(raster, spec, opt, say):
+def _detect(raster, spec, opt, say, fine=None):
+    """Coarse centres on ``raster``, sub-pixel ring fits on ``fine`` (default: the same raster)."""
     say("median filter, Canny, closing")
     filtered = detect.filter_raster(raster, opt.median_px)
     edges = detect.edge_images(filtered)
     say("circular Hough transform")
-    r_px = max(spec.ring_radii_mm) / opt.pixel_mm
-    coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / opt.pixel_mm,
-                                  2 * spec.n_fiducials + 20)
+    px = raster.pixel_mm
+    r_px = max(spec.ring_radii_mm) / px
+    coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / px, 2 * spec.n_fiducials + 20)
     if len(coarse) == 0:
         raise MarkcalError("no circles found on the plate")
-    coarse = detect.match_centres(edges.filtered, coarse, [r / opt.pixel_mm for r in spec.ring_radii_mm])
+    coarse = detect.match_centres(edges.filtered, coarse, [r / px for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
-    fit = detect.refine_rings(raster, raster.to_mm(coarse), spec.ring_radii_mm)
+    fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm)
     return edges, fit
 
 
@@ -135,6 +143,27 @@ def _run(cloud, source, spec, opt, say, t0):
     say("projecting onto the plate plane")
     raster = project(cloud.xyz_mm, cloud.intensity, plane, opt.pixel_mm)
     edges, fit = _detect(raster, spec, opt, say)
+    step = max(1, len(cloud.xyz_mm) // 150_000)
+    extra = {"plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
+             "plane_inlier_fraction": plane.inlier_fraction, "n_points": int(len(cloud.xyz_mm))}
+    return _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra,
+                   cloud.xyz_mm[::step].astype(np.float32), cloud.intensity[::step].astype(np.float32))
+
+
+def _run_image(image, source, spec, opt, say, t0):
+    """An image of the plate: no plane, no projection; Hough on a ~0.1 mm copy, ring fits on the pixels."""
+    check_image_size(image, spec)
+    fine = image_raster(image)
+    coarse = coarse_raster(fine, opt.pixel_mm)
+    edges, fit = _detect(coarse, spec, opt, say, fine=fine)
+    extra = {"image_pixel_mm": image.pixel_mm, "image_pixel_size_from": image.pixel_size_from,
+             "image_shape": list(image.intensity.shape), "image_bits": image.bits,
+             "image_inverted": image.inverted, "n_points": int(image.intensity.size)}
+    return _finish(fit, edges, coarse, flat_plane(), source, spec, opt, say, t0, extra,
+                   np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+
+
+def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, preview_xyz, preview_i):
     n_exp = len(spec.marked_ids)
     ok = fit.ok
     if ok.sum() >= 3:
@@ -142,7 +171,7 @@ def _run(cloud, source, spec, opt, say, t0):
     else:
         scale = 1.0
     if ok.sum() < n_exp / 2:
-        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges, spec, opt))
+        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges, spec, raster))
     if abs(scale - 1) > 0.04:
         raise MarkcalError(f"ring radii in the scan are {scale:.3f} x the spec's "
                            f"{list(spec.ring_radii_mm)} mm: wrong plate spec?")
@@ -229,26 +258,22 @@ def _run(cloud, source, spec, opt, say, t0):
         "rms_150_mm": stats["inner_150"].get("rms_mm"), "max_150_mm": stats["inner_150"].get("max_mm"),
         "rms_50_mm": stats["inner_50"].get("rms_mm"), "max_50_mm": stats["inner_50"].get("max_mm"),
         **fitted["summary"],
-        "plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
-        "plane_inlier_fraction": plane.inlier_fraction,
+        **extra,
         "in_plane_rotation_deg": -tf.angle_deg,
         "mirrored": bool(cand.mirrored),
         "orientation_method": choice.method,
         "orientation_margin": choice.margin if np.isfinite(choice.margin) else None,
         "orientation_candidates": [f"{c.label}: {c.phys_rms_mm * 1000:.2f} um" for c in choice.candidates],
         "model": opt.model if opt.model != "auto" else f"auto: {fitted['grid_model'].model.kind}",
-        "n_points": int(len(cloud.xyz_mm)),
         "rbf_training_s": rbf_s,
         "runtime_s": time.perf_counter() - t0,
     }
-    step = max(1, len(cloud.xyz_mm) // 150_000)
     return ScanResult(
         source=source, spec=spec, options=opt, fiducials=fid, missing_ids=missing, stats=stats,
         model=model, model_eq9=fitted["model_eq9"], forward_model=fitted["forward"], selection=sel_,
         grid_xy_mm=nodes, grid_dxy_mm=dxy, targets=targets, predicted=predicted, summary=summary,
         plane=plane, raster=raster, edges=edges,
-        preview_xyz_mm=cloud.xyz_mm[::step].astype(np.float32),
-        preview_intensity=cloud.intensity[::step].astype(np.float32),
+        preview_xyz_mm=preview_xyz, preview_intensity=preview_i,
         registration_angle_deg=tf.angle_deg, orientation=choice, grid_model=fitted["grid_model"])
 
 
@@ -311,13 +336,13 @@ def _fit_galvo_model(p, q, nodes, q_all, spec, opt) -> dict:
             "model_eq9": None, "forward": None, "grid_model": mc, "summary": summary}
 
 
-def _few_found_message(n_found, n_exp, edges, spec, opt):
+def _few_found_message(n_found, n_exp, edges, spec, raster):
     """Say how many were found and, when the discs have another size, what size."""
     from scipy import ndimage
     lab, n = ndimage.label(edges.filled)
     msg = f"only {n_found} of {n_exp} fiducials found (fewer than half the grid)"
     if n:
-        area = np.bincount(lab.ravel())[1:] * opt.pixel_mm ** 2
+        area = np.bincount(lab.ravel())[1:] * raster.pixel_mm ** 2
         big = area[area > 2.0]
         if len(big) >= 4:
             r = float(np.sqrt(np.median(big) / np.pi))
