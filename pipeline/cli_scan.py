@@ -18,7 +18,9 @@ def cmd_scan(args) -> int:
                                         "no_report": args.no_report, "model": args.model,
                                         "rotation_hint_deg": (float("nan") if args.rotation_hint_deg is None
                                                               else args.rotation_hint_deg),
-                                        "orientation": args.orientation, "mirror": args.mirror},
+                                        "orientation": args.orientation, "mirror": args.mirror,
+                                        "pixel_size_mm": (float("nan") if args.pixel_size_mm is None
+                                                          else args.pixel_size_mm)},
                                progress=say)
     s = res.summary
     say(f"orientation {s['in_plane_rotation_deg']:.1f} deg{' mirrored' if s['mirrored'] else ''} "
@@ -42,14 +44,7 @@ def cmd_render_scan(args) -> int:
     from markcal.stages.plate import PlateSpec
 
     say = progress(args.quiet)
-    mark = ()
-    if args.orientation_mark:
-        try:
-            mark = tuple(int(v) for v in args.orientation_mark.split(","))
-        except ValueError:
-            mark = (-1,)
-        if len(mark) != 2 or not (0 <= mark[0] < args.rows and 0 <= mark[1] < args.cols):
-            raise MarkcalError(f"--orientation-mark must be ROW,COL inside the grid (got {args.orientation_mark!r})")
+    mark = _parse_mark(args.orientation_mark, args.rows, args.cols)
     spec = PlateSpec(rows=args.rows, cols=args.cols,
                      pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
     correction = None
@@ -76,10 +71,46 @@ def cmd_render_scan(args) -> int:
     return 0
 
 
+def cmd_render_scan_image(args) -> int:
+    from markcal.fixtures.plate_image import MATERIALS, ImageOptions, render_plate_image, save_plate_image
+    from markcal.stages.plate import PlateSpec
+
+    say = progress(args.quiet)
+    if not 100 <= args.dpi <= 4800:
+        raise MarkcalError(f"--dpi must be within 100..4800 (got {args.dpi:g})")
+    if args.material not in MATERIALS:
+        raise MarkcalError(f"--material must be one of {', '.join(MATERIALS)}")
+    mark = _parse_mark(args.orientation_mark, args.rows, args.cols)
+    spec = PlateSpec(rows=args.rows, cols=args.cols,
+                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
+    opts = ImageOptions(dpi=args.dpi, rotation_deg=args.rotation_deg, mirror=args.mirror, material=args.material,
+                        bits=args.bits, rgb=args.rgb, jpeg_quality=args.jpeg_quality, n_dust=args.dust)
+    say(f"rendering a {args.dpi:g} dpi image of a {args.rows} x {args.cols} plate, seed {args.seed}")
+    r = render_plate_image(args.seed, spec, opts)
+    save_plate_image(args.out, r, fmt=args.format, dpi_tags=not args.no_dpi)
+    print(os.path.abspath(args.out))
+    return 0
+
+
+def _parse_mark(text, rows, cols) -> tuple:
+    if not text:
+        return ()
+    try:
+        mark = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        mark = (-1,)
+    if len(mark) != 2 or not (0 <= mark[0] < rows and 0 <= mark[1] < cols):
+        raise MarkcalError(f"--orientation-mark must be ROW,COL inside the grid (got {text!r})")
+    return mark
+
+
 def register(sub, render_sub) -> None:
     """Add ``scan`` to the top-level commands and ``scan`` to ``render``."""
     sc = sub.add_parser("scan", help="3D scan of a galvo-marked plate -> deviations, correction, report")
-    sc.add_argument("cloud", help="point cloud: .ply (with intensity), .pcd, .csv/.txt/.xyz, .npy (N x 4), mm")
+    sc.add_argument("cloud", help="point cloud: .ply (with intensity), .pcd, .csv/.txt/.xyz, .npy (N x 4), mm; "
+                                  "or an image of the plate: .tif/.png/.jpg (flatbed, grey or RGB, 8/16 bit)")
+    sc.add_argument("--pixel-size-mm", type=float, default=None,
+                    help="images: pixel size on the plate (default: from the file's dpi tags; refused when absent)")
     sc.add_argument("--plate", required=True, help="plate spec (PLATE.toml)")
     sc.add_argument("--out", required=True, help="output folder")
     sc.add_argument("--validation", action="store_true", help="label the report as a validation (post-calibration) scan")
@@ -114,3 +145,23 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--formats", default="ply,npy", help="comma list of ply, npy")
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_scan)
+
+    ri = render_sub.add_parser("scan-image", help="flatbed image of a galvo-marked plate, with truth")
+    ri.add_argument("--seed", type=int, default=0)
+    ri.add_argument("--out", required=True)
+    ri.add_argument("--rows", type=int, default=19)
+    ri.add_argument("--cols", type=int, default=19)
+    ri.add_argument("--pitch-mm", type=float, default=None)
+    ri.add_argument("--dpi", type=float, default=1200.0, help="flatbed resolution (600-2400 typical)")
+    ri.add_argument("--rotation-deg", type=float, default=None, help="in-plane turn (default: random +-5)")
+    ri.add_argument("--mirror", action="store_true", help="plate face down on the glass")
+    ri.add_argument("--material", default="anodised", help="anodised (bright marks) or paper (dark marks)")
+    ri.add_argument("--bits", type=int, choices=[8, 16], default=8)
+    ri.add_argument("--rgb", action="store_true")
+    ri.add_argument("--jpeg-quality", type=int, default=None, help="pass the pixels through JPEG at this quality")
+    ri.add_argument("--dust", type=int, default=60, help="dust specks")
+    ri.add_argument("--orientation-mark", default=None, help="ROW,COL of a grid site left unmarked")
+    ri.add_argument("--format", choices=["tif", "png", "jpg"], default="tif")
+    ri.add_argument("--no-dpi", action="store_true", help="write no resolution tags (the scan then needs --pixel-size-mm)")
+    ri.add_argument("--quiet", action="store_true")
+    ri.set_defaults(func=cmd_render_scan_image)

@@ -97,9 +97,9 @@ def _summary_section(result) -> str:
         ("galvo-model orientation margin", num(s.get("orientation_margin"), ""),
          "residual of the best other orientation ÷ the chosen one's (≥ 2 decides alone)"),
         ("plane fit RMS", num(s.get("plane_rms_mm")), f"inlier fraction {num(s.get('plane_inlier_fraction'), '')}"),
-        ("points in cloud", num(s.get("n_points"), ""), ""),
+        (("pixels in image" if "image_pixel_mm" in s else "points in cloud"), num(s.get("n_points"), ""), ""),
         ("runtime", num(s.get("runtime_s"), "s"), "whole scan flow"),
-        ("RBF training", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
+        ("model fitting", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
     ]
     out = ["<h2>Summary</h2>", table(["quantity", "value", "note"], rows, left_cols=1)]
     if str(s.get("orientation_method", "")).startswith("assumed"):
@@ -354,6 +354,16 @@ def _model_section(result) -> str:
     return "\n".join(out)
 
 
+def _image_section(result) -> tuple:
+    s = result.summary
+    h, w = s.get("image_shape", [0, 0])
+    note = (f"Image {w} × {h} pixels, {s.get('image_bits')} bit, pixel {num(s.get('image_pixel_mm'))} "
+            f"(from the {s.get('image_pixel_size_from')}); "
+            + ("marks brighter than the plate, so the grey values were inverted; " if s.get("image_inverted") else "")
+            + "no plane fit or projection: the image is the plate raster (x = columns, y = rows).")
+    return ("<h2>Image</h2>", f"<p>{esc(note)}</p>")
+
+
 def _render_3d(result) -> str:
     try:
         import pyvista as pv
@@ -439,7 +449,8 @@ def _fiducial_crops(result) -> str:
         scale = float(f["ring_radius_scale"][i])
         r, c = int(f["row"][i]), int(f["col"][i])
         inten, ext, (r0, r1, c0, c1) = _crop(np.asarray(raster.intensity, float), raster, uv, half)
-        valid = np.asarray(raster.valid)[r0:r1, c0:c1]
+        valid = (np.ones(inten.shape, bool) if raster.valid is None
+                 else np.asarray(raster.valid)[r0:r1, c0:c1])
         panels = [(np.ma.masked_array(inten, ~valid), "intensity (raster)"),
                   (np.asarray(edges.filtered)[r0:r1, c0:c1], "median filtered"),
                   (np.asarray(edges.edges)[r0:r1, c0:c1], "Canny edges"),
@@ -515,8 +526,7 @@ def scan_report_html(result: "ScanResult") -> str:
         _histogram_figures(result),
         _stats_table(result.stats),
         _model_section(result),
-        "<h2>Point cloud</h2>",
-        _render_3d(result),
+        *(_image_section(result) if "image_pixel_mm" in s else ("<h2>Point cloud</h2>", _render_3d(result))),
         "<h2>Detected fiducials</h2>",
         _fiducial_crops(result),
         _footer(),

@@ -151,10 +151,10 @@ class RingFit:
     ok: np.ndarray
 
 
-def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float):
-    """Raw samples (u, v, I) in a square window around each centre; mask = valid & inside."""
+def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float, stride: int = 1):
+    """Raw samples (u, v, I) in a square window around each centre (every ``stride``-th cell); mask = valid & inside."""
     half = int(np.ceil(radius_mm / raster.pixel_mm)) + 1
-    offs = np.arange(-half, half + 1)
+    offs = np.arange(-(half // stride) * stride, half + 1, stride)
     cr = np.rint(raster.to_pixel(uv0_mm)).astype(int)
     rr = cr[:, 1, None, None] + offs[None, :, None]
     cc = cr[:, 0, None, None] + offs[None, None, :]
@@ -271,16 +271,21 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         Nominal ring radii.
     """
     radii = tuple(float(r) for r in radii_mm)
-    # about 100 rings per batch at 0.1 mm cells; fewer on fine images (memory ~ rings x samples)
-    chunk = max(2, min(chunk, int(chunk * (raster.pixel_mm / 0.1) ** 2)))
+    # fine images (cells < 0.05 mm): every stride-th cell (~0.04 mm apart) and, in the fine fit, only a
+    # band of +-0.3 mm around the rings; about 100 rings per batch at 0.1 mm cells, fewer on fine images
+    fine = raster.pixel_mm < 0.05
+    stride = max(1, int(round(0.04 / raster.pixel_mm))) if fine else 1
+    cell = raster.pixel_mm * stride
+    chunk = max(2, min(chunk, int(chunk * (cell / 0.1) ** 2)))
     reach = max(radii) + 0.5
     inner = max(min(radii) - 0.5, 0.0)
+    reach_b, inner_b = (max(radii) + 0.3, max(min(radii) - 0.3, 0.0)) if fine else (reach, inner)
     out = {k: [] for k in ("uv", "m", "w", "a", "rms", "n", "shift")}
     free_a = np.array([1, 1, 1, 1, 1, 0, 1, 1], float)
     free_b = np.ones(8)
     for s in range(0, len(uv0_mm), chunk):
         uv0 = np.asarray(uv0_mm[s:s + chunk], float)
-        u, v, y, valid = _gather(raster, uv0, reach)
+        u, v, y, valid = _gather(raster, uv0, reach, stride)
         rho0 = np.hypot(u - uv0[:, :1], v - uv0[:, 1:])
         mask, u, v, y = _compact(valid & (rho0 < reach) & (rho0 > inner), u, v, y)
         b0 = _masked_median(y, mask)
@@ -292,9 +297,9 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         p[:, 5] = 0.15
         p, _ = _gauss_newton(p, u, v, y, mask, radii, 6, free_a)
         # re-centre the window on the new centre before the fine fit
-        u, v, y, valid = _gather(raster, p[:, :2], reach)
+        u, v, y, valid = _gather(raster, p[:, :2], reach_b, stride)
         rho1 = np.hypot(u - p[:, :1], v - p[:, 1:2])
-        mask, u, v, y = _compact(valid & (rho1 < reach) & (rho1 > inner), u, v, y)
+        mask, u, v, y = _compact(valid & (rho1 < reach_b) & (rho1 > inner_b), u, v, y)
         p[:, 5] = np.clip(p[:, 5], 0.03, 0.1)
         p, scale = _gauss_newton(p, u, v, y, mask, radii, 7, free_b)
         out["uv"].append(p[:, :2])
@@ -305,7 +310,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         out["n"].append(mask.sum(axis=1))
         out["shift"].append(np.hypot(*(p[:, :2] - uv0).T))
     cat = {k: np.concatenate(v) for k, v in out.items()}
-    n_full = np.pi * (reach ** 2 - inner ** 2) / raster.pixel_mm ** 2
+    n_full = np.pi * (reach_b ** 2 - inner_b ** 2) / cell ** 2
     ok = ((np.abs(cat["m"]) < 0.06) & (np.abs(cat["a"]) > 3 * cat["rms"] / np.sqrt(10))
           & (cat["shift"] < 1.5) & (cat["n"] > 0.4 * n_full) & np.all(np.isfinite(cat["uv"]), axis=1))
     return RingFit(uv_mm=cat["uv"], radius_scale=1 + cat["m"], width_mm=cat["w"], contrast=cat["a"],

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from markcal.pipeline.config import read_plate_spec
-from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext, spec_beside
 from markcal.stages import detect, galvo, orientation, rbf
 from markcal.stages.deviation import deviation_stats, grid_nodes
 from markcal.stages.errors import MarkcalError
@@ -89,12 +89,13 @@ class ScanResult:
 
 
 def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, progress=None) -> ScanResult:
-    """Run the scan flow on one cloud.
+    """Run the scan flow on one cloud or image.
 
     Parameters
     ----------
     cloud_path : path
-        PLY, PCD, CSV/TXT or NPY cloud in mm (scanner frame).
+        PLY, PCD, CSV/TXT or NPY cloud in mm (scanner frame), or a TIFF/PNG/JPEG
+        image of the plate (pixel size from its dpi tags or ``options.pixel_size_mm``).
     spec : PlateSpec
         What was marked.
     progress : callable, optional
@@ -354,12 +355,28 @@ def _few_found_message(n_found, n_exp, edges, spec, raster):
 
 def _claims(path) -> bool:
     e = file_ext(path)
+    if e in IMAGE_EXTS:
+        return _plate_spec_beside(path)
     if e in (".ply", ".pcd", ".xyz", ".npy"):
         return True
     if e in (".csv", ".txt"):
         h = csv_header(path)
         return not ({"t_s", "ref_mm", "pos_mm"} & set(h)) and (len(h) >= 3 or not any(c.isalpha() for c in "".join(h)))
     return False
+
+
+def _plate_spec_beside(path) -> bool:
+    """An image is a plate image when ``<stem>.toml`` or ``plate.toml`` beside it has a ``[grid]`` section
+    (the indents flow, which also reads TIFF, uses ``[array]`` specs)."""
+    import tomllib
+    spec = spec_beside(path, "plate.toml")
+    if spec is None:
+        return False
+    try:
+        with open(spec, "rb") as fh:
+            return isinstance(tomllib.load(fh).get("grid"), dict)
+    except (OSError, ValueError):
+        return False
 
 
 def scan_options(options: dict) -> ScanOptions:
@@ -371,8 +388,10 @@ def scan_options(options: dict) -> ScanOptions:
             raise MarkcalError(f"unknown {name} {v!r} (known: {', '.join(allowed)})")
     hint = options.get("rotation_hint_deg")
     hint = None if hint is None or not np.isfinite(float(hint)) else float(hint)     # NaN: no hint
+    px = options.get("pixel_size_mm")
+    px = None if px is None or not np.isfinite(float(px)) else float(px)              # NaN: from the file
     return ScanOptions(seed=int(options["seed"]), validation=bool(options["validation"]), model=model,
-                       rotation_hint_deg=hint, orientation=orient, mirror=mirror)
+                       rotation_hint_deg=hint, orientation=orient, mirror=mirror, pixel_size_mm=px)
 
 
 def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
@@ -381,10 +400,11 @@ def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
 
 
 FLOW = FlowDescriptor(
-    name="scan", help="3D scan of a galvo-marked plate -> deviations, correction, report",
+    name="scan", help="3D scan or flatbed image of a galvo-marked plate -> deviations, correction, report",
     claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
     options={"seed": 0, "validation": False, "no_report": False, "model": "ols-rbf",
-             "rotation_hint_deg": float("nan"), "orientation": "upright", "mirror": "no"},
+             "rotation_hint_deg": float("nan"), "orientation": "upright", "mirror": "no",
+             "pixel_size_mm": float("nan")},
     key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
                  Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
                  Figure("max_mm", "deviation max", "mm"), Figure("cv_rmse_mm", "RBF CV RMSE", "mm")),
