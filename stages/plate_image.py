@@ -107,6 +107,8 @@ def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
     """
     path, ext = existing_file(path)
     arr, dpi = _read_pixels(path, ext)
+    if dpi is not None:     # PNG stores pixels per metre: 1200 dpi comes back as 1199.998
+        dpi = tuple(float(np.rint(d)) if abs(d - np.rint(d)) < 0.02 else float(d) for d in dpi)
     if pixel_size_mm is not None:
         if not (np.isfinite(pixel_size_mm) and pixel_size_mm > 0):
             raise MarkcalError(f"--pixel-size-mm must be positive (got {pixel_size_mm})")
