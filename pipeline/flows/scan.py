@@ -121,17 +121,19 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
         raise exc.with_path(cloud_path) from None
 
 
-def _detect(raster, spec, opt, say, fine=None):
+def _detect(raster, spec, opt, say, fine=None, spacing_mm=None):
     """Coarse centres on ``raster``, sub-pixel ring fits on ``fine`` (default: the same raster)."""
     say("median filter, Canny, closing")
-    filtered = detect.filter_raster(raster, opt.median_px)
+    # the median filter spans about 0.5 mm (5 cells of 0.1 mm) whatever the cell size
+    med = max(3, int(round(opt.median_px * 0.1 / raster.pixel_mm)) | 1) if raster.pixel_mm > 0.1 else opt.median_px
+    filtered = detect.filter_raster(raster, med)
     edges = detect.edge_images(filtered)
     say("circular Hough transform")
     px = raster.pixel_mm
     r_px = max(spec.ring_radii_mm) / px
     coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / px, 2 * spec.n_fiducials + 20)
     if len(coarse) == 0:
-        raise MarkcalError("no circles found on the plate")
+        raise MarkcalError("no circles found on the plate" + _what_i_saw(spec, raster, spacing_mm))
     coarse = detect.match_centres(edges.filtered, coarse, [r / px for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
     fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm)
@@ -143,10 +145,16 @@ def _run(cloud, source, spec, opt, say, t0):
     plane = fit_plane(cloud.xyz_mm, seed=opt.seed)
     say("projecting onto the plate plane")
     raster = project(cloud.xyz_mm, cloud.intensity, plane, opt.pixel_mm)
-    edges, fit = _detect(raster, spec, opt, say)
+    spacing = point_spacing_mm(raster)
+    if spacing > 1.3 * opt.pixel_mm:
+        # a coarse scan: one cell per point, so the rings are not broken up by empty cells
+        say(f"coarse scan (points {spacing:.2f} mm apart): re-projecting on {spacing:.2f} mm cells")
+        raster = project(cloud.xyz_mm, cloud.intensity, plane, float(np.round(spacing, 3)))
+    edges, fit = _detect(raster, spec, opt, say, spacing_mm=spacing)
     step = max(1, len(cloud.xyz_mm) // 150_000)
     extra = {"plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
-             "plane_inlier_fraction": plane.inlier_fraction, "n_points": int(len(cloud.xyz_mm))}
+             "plane_inlier_fraction": plane.inlier_fraction, "n_points": int(len(cloud.xyz_mm)),
+             "point_spacing_mm": spacing, "raster_pixel_mm": raster.pixel_mm}
     return _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra,
                    cloud.xyz_mm[::step].astype(np.float32), cloud.intensity[::step].astype(np.float32))
 
@@ -156,7 +164,7 @@ def _run_image(image, source, spec, opt, say, t0):
     check_image_size(image, spec)
     fine = image_raster(image)
     coarse = coarse_raster(fine, opt.pixel_mm)
-    edges, fit = _detect(coarse, spec, opt, say, fine=fine)
+    edges, fit = _detect(coarse, spec, opt, say, fine=fine, spacing_mm=image.pixel_mm)
     extra = {"image_pixel_mm": image.pixel_mm, "image_pixel_size_from": image.pixel_size_from,
              "image_shape": list(image.intensity.shape), "image_bits": image.bits,
              "image_inverted": image.inverted, "n_points": int(image.intensity.size)}
@@ -172,7 +180,11 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
     else:
         scale = 1.0
     if ok.sum() < n_exp / 2:
-        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges, spec, raster))
+        seen = extra.get("point_spacing_mm", extra.get("image_pixel_mm"))
+        radii = sorted(spec.ring_radii_mm)
+        resolved = seen is None or (radii[-1] - radii[0]) / seen >= 2     # below 2 the blobs merge
+        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges if resolved else None, spec, raster)
+                           + _what_i_saw(spec, raster, seen))
     if abs(scale - 1) > 0.04:
         raise MarkcalError(f"ring radii in the scan are {scale:.3f} x the spec's "
                            f"{list(spec.ring_radii_mm)} mm: wrong plate spec?")
@@ -337,11 +349,36 @@ def _fit_galvo_model(p, q, nodes, q_all, spec, opt) -> dict:
             "model_eq9": None, "forward": None, "grid_model": mc, "summary": summary}
 
 
+def point_spacing_mm(raster) -> float:
+    """Typical distance (mm) between points: the cell size over the root of the filled fraction of cells
+    in the middle half of the raster (where the plate is; the frame around it is left out)."""
+    h, w = raster.valid.shape
+    mid = raster.valid[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
+    frac = float(mid.mean()) if mid.size else 1.0
+    return raster.pixel_mm / np.sqrt(max(frac, 1e-3))
+
+
+def _what_i_saw(spec, raster, spacing_mm) -> str:
+    """Point spacing and how many samples span the ring gap and the ring line."""
+    if spacing_mm is None:
+        return ""
+    radii = sorted(spec.ring_radii_mm)
+    gap = radii[-1] - radii[0]
+    msg = f"; points are {spacing_mm:.3f} mm apart"
+    if gap > 0:
+        msg += f", so the {gap:g} mm gap between the rings spans {gap / spacing_mm:.1f} samples"
+        if gap / spacing_mm < 3:
+            msg += " (at least 3 are needed)"
+    return msg
+
+
 def _few_found_message(n_found, n_exp, edges, spec, raster):
     """Say how many were found and, when the discs have another size, what size."""
     from scipy import ndimage
-    lab, n = ndimage.label(edges.filled)
+    lab, n = ndimage.label(edges.filled) if edges is not None else (None, 0)
     msg = f"only {n_found} of {n_exp} fiducials found (fewer than half the grid)"
+    if edges is None:          # rings not resolved: the blobs' size says nothing about the radius
+        return msg
     if n:
         area = np.bincount(lab.ravel())[1:] * raster.pixel_mm ** 2
         big = area[area > 2.0]
