@@ -230,7 +230,8 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
         f, jac = _model(p, u, v, radii)
         r = np.where(mask, y - f, 0.0)
         absr = np.abs(r)
-        scale = np.maximum(_masked_median(absr, mask) * 1.4826, 1e-9)
+        sub = max(1, absr.shape[1] // 2048)       # wide rows (fine images): the scale from every sub-th sample
+        scale = np.maximum(_masked_median(absr[:, ::sub], mask[:, ::sub]) * 1.4826, 1e-9)
         wts = np.where(mask, np.minimum(1.0, huber_k * scale[:, None] / np.maximum(absr, 1e-12)), 0.0)
         cost = (wts * r * r).sum(axis=1)
         jac = jac * free
@@ -251,7 +252,8 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     return p, scale
 
 
-def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) -> RingFit:
+def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
+                 coarse: Raster | None = None) -> RingFit:
     """Sub-pixel double-ring centres by a robust fit to the raw samples.
 
     The model is b + a * sum_k exp(-(rho - r_k (1 + m))^2 / (2 w^2)) plus a
@@ -269,12 +271,17 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         Starting centres, plate frame (mm).
     radii_mm : sequence of float
         Nominal ring radii.
+    coarse : Raster, optional
+        An area-averaged copy of a fine ``raster`` (images): the wide-line
+        capture pass runs on it, the fine fit on ``raster``.
     """
     radii = tuple(float(r) for r in radii_mm)
-    # fine images (cells < 0.05 mm): every stride-th cell (~0.04 mm apart) and, in the fine fit, only a
-    # band of +-0.3 mm around the rings; about 100 rings per batch at 0.1 mm cells, fewer on fine images
+    # fine images (cells < 0.05 mm): every stride-th cell (~0.06 mm apart, 3 across the 0.2 mm ring gap)
+    # and, in the fine fit, only a band of +-0.3 mm around the rings; about 100 rings per batch at 0.1 mm
+    # cells, fewer on fine images
     fine = raster.pixel_mm < 0.05
-    stride = max(1, int(round(0.04 / raster.pixel_mm))) if fine else 1
+    stride = max(1, int(round(0.06 / raster.pixel_mm))) if fine else 1
+    first, stride1 = (coarse, 1) if coarse is not None else (raster, stride)
     cell = raster.pixel_mm * stride
     chunk = max(2, min(chunk, int(chunk * (cell / 0.1) ** 2)))
     reach = max(radii) + 0.5
@@ -285,7 +292,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
     free_b = np.ones(8)
     for s in range(0, len(uv0_mm), chunk):
         uv0 = np.asarray(uv0_mm[s:s + chunk], float)
-        u, v, y, valid = _gather(raster, uv0, reach, stride)
+        u, v, y, valid = _gather(first, uv0, reach, stride1)
         rho0 = np.hypot(u - uv0[:, :1], v - uv0[:, 1:])
         mask, u, v, y = _compact(valid & (rho0 < reach) & (rho0 > inner), u, v, y)
         b0 = _masked_median(y, mask)

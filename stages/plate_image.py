@@ -10,7 +10,8 @@ missing resolution. A flatbed scanner's dpi is its real sampling.
 
 Grey or RGB (luminance, Rec. 601 weights), 8 or 16 bit. Marks brighter than
 the plate (laser-marked anodised aluminium) are inverted so the rings are
-always darker. One float32 copy of the pixels is kept.
+always darker. Integer pixels stay integers (one copy of a grey image, none
+more); the ring fits convert only the samples they use.
 """
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ MIN_GAP_PX = 3.0
 
 @dataclass(frozen=True)
 class PlateImage:
-    """Grey pixels (float32, rings darker) and the pixel size (mm) with where it came from."""
+    """Grey pixels (uint8/uint16 as read, float32 otherwise; rings darker) and the pixel size (mm)."""
 
     intensity: np.ndarray
     pixel_mm: float
@@ -74,22 +75,23 @@ def _read_pixels(path: str, ext: str) -> tuple:
 
 
 def _grey(arr: np.ndarray) -> tuple:
-    """float32 luminance and bit depth, one new array."""
+    """Grey pixels (8/16-bit integers stay integers: no float copy of a large image) and the bit depth."""
+    import cv2
     if arr.dtype == np.bool_:
         arr = arr.astype(np.uint8)
-    if not (np.issubdtype(arr.dtype, np.integer) or np.issubdtype(arr.dtype, np.floating)):
-        raise MarkcalError(f"unsupported pixel type {arr.dtype}")
-    bits = 8 * arr.dtype.itemsize if np.issubdtype(arr.dtype, np.integer) else 32
+    if arr.dtype not in (np.uint8, np.uint16) and not np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float32)
+    bits = 8 * arr.dtype.itemsize if arr.dtype in (np.uint8, np.uint16) else 32
+    if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[-1] not in (3, 4):     # planar RGB TIFF
+        arr = np.moveaxis(arr, 0, -1)
     if arr.ndim == 3 and arr.shape[-1] in (3, 4):
-        out = np.multiply(arr[..., 0], 0.299, dtype=np.float32)
-        out += np.multiply(arr[..., 1], 0.587, dtype=np.float32)
-        out += np.multiply(arr[..., 2], 0.114, dtype=np.float32)
-        return out, bits
-    if arr.ndim == 3 and arr.shape[0] in (3, 4):          # planar RGB TIFF
-        return _grey(np.moveaxis(arr, 0, -1))
+        if arr.dtype not in (np.uint8, np.uint16, np.float32):
+            arr = arr.astype(np.float32)
+        code = cv2.COLOR_RGB2GRAY if arr.shape[-1] == 3 else cv2.COLOR_RGBA2GRAY   # Rec. 601 weights
+        return cv2.cvtColor(np.ascontiguousarray(arr), code), bits
     if arr.ndim != 2:
         raise MarkcalError(f"image has shape {arr.shape}: expected a grey or RGB picture")
-    return arr.astype(np.float32), bits
+    return (arr if arr.dtype in (np.uint8, np.uint16) else arr.astype(np.float32)), bits
 
 
 def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
@@ -133,7 +135,9 @@ def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
     lo, med, hi = np.percentile(sub, [1, 50, 99])
     inverted = bool(hi - med > 1.2 * (med - lo))
     if inverted:
-        np.subtract(float(grey.max()), grey, out=grey)
+        if not grey.flags.writeable:
+            grey = grey.copy()
+        np.subtract(grey.max(), grey, out=grey)
     return PlateImage(intensity=grey, pixel_mm=px, pixel_size_from=src, bits=bits, inverted=inverted)
 
 

@@ -136,7 +136,8 @@ def _detect(raster, spec, opt, say, fine=None, spacing_mm=None):
         raise MarkcalError("no circles found on the plate" + _what_i_saw(spec, raster, spacing_mm))
     coarse = detect.match_centres(edges.filtered, coarse, [r / px for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
-    fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm)
+    fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm,
+                              coarse=raster if fine is not None else None)
     return edges, fit
 
 
