@@ -35,6 +35,8 @@ MODELS = ("ols-rbf", *KINDS, "auto")
 #: how the orientation is decided without a hint or an orientation mark
 ORIENTATIONS = ("upright", "auto")
 MIRRORS = ("no", "yes", "auto")
+#: coarse scans: raster cells this many point spacings wide (1.2 was measured worse: 270 vs 284 of 294 found)
+COARSE_CELL = 1.0
 
 
 @dataclass(frozen=True)
@@ -150,7 +152,7 @@ def _run(cloud, source, spec, opt, say, t0):
     if spacing > 1.3 * opt.pixel_mm:
         # a coarse scan: one cell per point, so the rings are not broken up by empty cells
         say(f"coarse scan (points {spacing:.2f} mm apart): re-projecting on {spacing:.2f} mm cells")
-        raster = project(cloud.xyz_mm, cloud.intensity, plane, float(np.round(spacing, 3)))
+        raster = project(cloud.xyz_mm, cloud.intensity, plane, float(np.round(COARSE_CELL * spacing, 3)))
     edges, fit = _detect(raster, spec, opt, say, spacing_mm=spacing)
     step = max(1, len(cloud.xyz_mm) // 150_000)
     extra = {"plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
