@@ -15,10 +15,21 @@ def cmd_scan(args) -> int:
     say = progress(args.quiet)
     res, paths = run_and_write("scan", args.cloud, args.out, spec_path=args.plate,
                                options={"seed": args.seed, "validation": args.validation,
-                                        "no_report": args.no_report}, progress=say)
+                                        "no_report": args.no_report, "model": args.model,
+                                        "rotation_hint_deg": (float("nan") if args.rotation_hint_deg is None
+                                                              else args.rotation_hint_deg),
+                                        "orientation": args.orientation, "mirror": args.mirror,
+                                        "pixel_size_mm": (float("nan") if args.pixel_size_mm is None
+                                                          else args.pixel_size_mm)},
+                               progress=say)
     s = res.summary
+    say(f"orientation {s['in_plane_rotation_deg']:.1f} deg{' mirrored' if s['mirrored'] else ''} "
+        f"({s['orientation_method']}; galvo-model margin {s['orientation_margin'] or float('inf'):.2f})")
     say(f"{s['n_detected']}/{s['n_expected']} fiducials, deviation RMS {s['rms_mm']:.4f} mm, "
-        f"max {s['max_mm']:.4f} mm; RBF {s['n_neurons']} neurons, CV RMSE {s['cv_rmse_mm']:.4f} mm")
+        f"max {s['max_mm']:.4f} mm; model {s['model']}, CV RMSE {s['cv_rmse_mm']:.4f} mm")
+    if s["orientation_method"].startswith("assumed"):
+        say("warning: orientation assumed upright (within 35 deg); the galvo field cannot tell quarter turns "
+            "apart, so a plate laid otherwise needs --rotation-hint-deg or an orientation mark")
     if res.missing_ids:
         say(f"not detected: ids {res.missing_ids}")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
@@ -33,8 +44,9 @@ def cmd_render_scan(args) -> int:
     from markcal.stages.plate import PlateSpec
 
     say = progress(args.quiet)
+    mark = _parse_mark(args.orientation_mark, args.rows, args.cols)
     spec = PlateSpec(rows=args.rows, cols=args.cols,
-                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm)
+                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
     correction = None
     if args.correction:
         try:
@@ -48,7 +60,8 @@ def cmd_render_scan(args) -> int:
         correction = grid.command
     mseed = args.seed if args.machine_seed is None else args.machine_seed
     machine = sample_true_galvo(np.random.default_rng([mseed, 1]), spec.d_mm, spec.e_mm)
-    opts = ScanOptions(z_convention=args.z_convention, n_contaminated=args.contaminated)
+    opts = ScanOptions(z_convention=args.z_convention, n_contaminated=args.contaminated,
+                       rotation_deg=args.rotation_deg, mirror=args.mirror)
     say(f"rendering {'validation' if correction else 'calibration'} plate, seed {args.seed}")
     r = render_scan(args.seed, spec, opts, machine=machine, correction=correction)
     r.truth["machine_seed"] = int(mseed)
@@ -58,14 +71,60 @@ def cmd_render_scan(args) -> int:
     return 0
 
 
+def cmd_render_scan_image(args) -> int:
+    from markcal.fixtures.plate_image import MATERIALS, ImageOptions, render_plate_image, save_plate_image
+    from markcal.stages.plate import PlateSpec
+
+    say = progress(args.quiet)
+    if not 100 <= args.dpi <= 4800:
+        raise MarkcalError(f"--dpi must be within 100..4800 (got {args.dpi:g})")
+    if args.material not in MATERIALS:
+        raise MarkcalError(f"--material must be one of {', '.join(MATERIALS)}")
+    mark = _parse_mark(args.orientation_mark, args.rows, args.cols)
+    spec = PlateSpec(rows=args.rows, cols=args.cols,
+                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
+    opts = ImageOptions(dpi=args.dpi, rotation_deg=args.rotation_deg, mirror=args.mirror, material=args.material,
+                        bits=args.bits, rgb=args.rgb, jpeg_quality=args.jpeg_quality, n_dust=args.dust)
+    say(f"rendering a {args.dpi:g} dpi image of a {args.rows} x {args.cols} plate, seed {args.seed}")
+    r = render_plate_image(args.seed, spec, opts)
+    save_plate_image(args.out, r, fmt=args.format, dpi_tags=not args.no_dpi)
+    print(os.path.abspath(args.out))
+    return 0
+
+
+def _parse_mark(text, rows, cols) -> tuple:
+    if not text:
+        return ()
+    try:
+        mark = tuple(int(v) for v in text.split(","))
+    except ValueError:
+        mark = (-1,)
+    if len(mark) != 2 or not (0 <= mark[0] < rows and 0 <= mark[1] < cols):
+        raise MarkcalError(f"--orientation-mark must be ROW,COL inside the grid (got {text!r})")
+    return mark
+
+
 def register(sub, render_sub) -> None:
     """Add ``scan`` to the top-level commands and ``scan`` to ``render``."""
     sc = sub.add_parser("scan", help="3D scan of a galvo-marked plate -> deviations, correction, report")
-    sc.add_argument("cloud", help="point cloud: .ply (with intensity), .pcd, .csv/.txt/.xyz, .npy (N x 4), mm")
+    sc.add_argument("cloud", help="point cloud: .ply (with intensity), .pcd, .csv/.txt/.xyz, .npy (N x 4), mm; "
+                                  "or an image of the plate: .tif/.png/.jpg (flatbed, grey or RGB, 8/16 bit)")
+    sc.add_argument("--pixel-size-mm", type=float, default=None,
+                    help="images: pixel size on the plate (default: from the file's dpi tags; refused when absent)")
     sc.add_argument("--plate", required=True, help="plate spec (PLATE.toml)")
     sc.add_argument("--out", required=True, help="output folder")
     sc.add_argument("--validation", action="store_true", help="label the report as a validation (post-calibration) scan")
     sc.add_argument("--seed", type=int, default=0, help="seed of the random steps (RANSAC, CV folds)")
+    sc.add_argument("--model", default="ols-rbf", choices=["ols-rbf", "physical+rbf", "rbf", "poly3", "auto"],
+                    help="correction model: the paper's OLS RBF network (default), the galvo model of paper 004 "
+                         "eqs. 1-5 plus a thin-plate spline, a spline, a cubic, or auto (lowest k-fold CV error)")
+    sc.add_argument("--rotation-hint-deg", type=float, default=None,
+                    help="the plate's approximate in-plane angle in the scan (deg, +-35): picks the orientation")
+    sc.add_argument("--orientation", default="upright", choices=["upright", "auto"],
+                    help="without a hint or an orientation mark: assume the plate lies within +-35 deg of upright "
+                         "(default), or let the galvo model choose (refused unless its margin is wide)")
+    sc.add_argument("--mirror", default="no", choices=["no", "yes", "auto"],
+                    help="the measurement sees the plate from the back (flatbed face down): no, yes, auto")
     sc.add_argument("--no-report", action="store_true", help="skip report.html")
     sc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     sc.set_defaults(func=cmd_scan)
@@ -80,6 +139,29 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--machine-seed", type=int, default=None, help="seed of the true galvo (default: --seed)")
     rs.add_argument("--z-convention", choices=["random", "height", "range"], default="random")
     rs.add_argument("--contaminated", type=int, default=0, help="fiducials hidden under dirt")
+    rs.add_argument("--rotation-deg", type=float, default=None, help="in-plane turn of the plate (default: random +-15)")
+    rs.add_argument("--mirror", action="store_true", help="render the cloud as seen from the back")
+    rs.add_argument("--orientation-mark", default=None, help="ROW,COL of a grid site left unmarked")
     rs.add_argument("--formats", default="ply,npy", help="comma list of ply, npy")
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_scan)
+
+    ri = render_sub.add_parser("scan-image", help="flatbed image of a galvo-marked plate, with truth")
+    ri.add_argument("--seed", type=int, default=0)
+    ri.add_argument("--out", required=True)
+    ri.add_argument("--rows", type=int, default=19)
+    ri.add_argument("--cols", type=int, default=19)
+    ri.add_argument("--pitch-mm", type=float, default=None)
+    ri.add_argument("--dpi", type=float, default=1200.0, help="flatbed resolution (600-2400 typical)")
+    ri.add_argument("--rotation-deg", type=float, default=None, help="in-plane turn (default: random +-5)")
+    ri.add_argument("--mirror", action="store_true", help="plate face down on the glass")
+    ri.add_argument("--material", default="anodised", help="anodised (bright marks) or paper (dark marks)")
+    ri.add_argument("--bits", type=int, choices=[8, 16], default=8)
+    ri.add_argument("--rgb", action="store_true")
+    ri.add_argument("--jpeg-quality", type=int, default=None, help="pass the pixels through JPEG at this quality")
+    ri.add_argument("--dust", type=int, default=60, help="dust specks")
+    ri.add_argument("--orientation-mark", default=None, help="ROW,COL of a grid site left unmarked")
+    ri.add_argument("--format", choices=["tif", "png", "jpg"], default="tif")
+    ri.add_argument("--no-dpi", action="store_true", help="write no resolution tags (the scan then needs --pixel-size-mm)")
+    ri.add_argument("--quiet", action="store_true")
+    ri.set_defaults(func=cmd_render_scan_image)

@@ -145,7 +145,8 @@ _DEFAULT_PLATE = PlateSpec()
 PLATE_SCHEMA = {
     "grid": {"rows": Key("int", _DEFAULT_PLATE.rows, min=3), "cols": Key("int", _DEFAULT_PLATE.cols, min=3),
              "pitch_mm": Key("float", _DEFAULT_PLATE.pitch_mm, positive=True, unit="mm")},
-    "fiducial": {"ring_radii_mm": Key("floats", _DEFAULT_PLATE.ring_radii_mm, positive=True, unit="mm")},
+    "fiducial": {"ring_radii_mm": Key("floats", _DEFAULT_PLATE.ring_radii_mm, positive=True, unit="mm"),
+                 "orientation_mark": Key("ints", (), min=0)},
     "galvo": {"d_mm": Key("float", _DEFAULT_PLATE.d_mm, positive=True, unit="mm"),
               "e_mm": Key("float", _DEFAULT_PLATE.e_mm, min=0.0, unit="mm")},
     "correction": {"grid_step_mm": Key("float", _DEFAULT_PLATE.grid_step_mm, positive=True, unit="mm")},
@@ -154,12 +155,18 @@ PLATE_SCHEMA = {
 
 def read_plate_spec(path) -> PlateSpec:
     """Read a PLATE.toml (``[grid] rows cols pitch_mm``, ``[fiducial] ring_radii_mm``,
-    ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``; lengths in mm)."""
+    ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``; lengths in mm).
+
+    ``[fiducial] orientation_mark = [row, col]`` declares a grid site left
+    unmarked, which tells the plate's orientation at any angle."""
     path = os.fspath(path)
     c = read_config(path, PLATE_SCHEMA, "plate spec")
     spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"])
     if 2 * max(spec.ring_radii_mm) >= spec.pitch_mm:
         raise MarkcalError("ring_radii_mm must be positive and the rings must fit inside the pitch", path)
+    mark = spec.orientation_mark
+    if mark and (len(mark) != 2 or mark[0] >= spec.rows or mark[1] >= spec.cols):
+        raise MarkcalError(f"[fiducial] orientation_mark must be [row, col] of a grid site (got {list(mark)})", path)
     return spec
 
 

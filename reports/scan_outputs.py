@@ -28,7 +28,26 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     out.csv("correction_grid.csv", {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
                                     "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
     out.csv("corrected_targets.csv", result.targets)
-    out.json("model.json", {
+    out.json("model.json", _model_document(result))
+    if report:
+        out.text("report.html", scan_report_html(result))
+    return out.finish(result.summary)
+
+
+def _model_document(result) -> dict:
+    """model.json: the OLS RBF network, or a ``markcal-grid-model-1`` galvo model (as the grid flow writes)."""
+    if result.grid_model is not None:
+        f = result.fiducials
+        return {
+            "description": "Galvo model: command (mm, controller frame) -> landing (mm); the command for a "
+                           "wanted position is found by inverting it. Load with markcal.stages.galvo_fit.GridModel.",
+            "model": result.grid_model.model.to_dict(),
+            "valid_region_mm": [float(np.min(f["x_nom_mm"])), float(np.max(f["x_nom_mm"])),
+                                float(np.min(f["y_nom_mm"])), float(np.max(f["y_nom_mm"]))],
+            "cv_rmse_mm": result.grid_model.cv_rmse_mm, "folds": result.grid_model.folds,
+            "galvo": {"d_mm": result.spec.d_mm, "e_mm": result.spec.e_mm},
+        }
+    return {
         "description": "Command offset for a wanted position in the GLS frame: the command for a target "
                        "(x, y) is (x + dx, y + dy). Load with markcal.pipeline.tables.read_rbf_model.",
         "input": "wanted position (x_mm, y_mm), GLS frame",
@@ -36,7 +55,4 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
         "selection": {"spread_mm": result.selection.spread_mm, "mse_goal_mm2": result.selection.mse_goal_mm2,
                       "cv_rmse_mm": result.selection.cv_rmse_mm, "folds": result.options.folds},
         "galvo": {"d_mm": result.spec.d_mm, "e_mm": result.spec.e_mm},
-    })
-    if report:
-        out.text("report.html", scan_report_html(result))
-    return out.finish(result.summary)
+    }

@@ -59,8 +59,11 @@ def _verdict(s: dict, kind: str) -> str:
         parts.append(f"residual after calibration: RMS {num(s.get('rms_mm'))}, max {num(s.get('max_mm'))}")
     else:
         parts.append(f"measured deviation: RMS {num(s.get('rms_mm'))}, max {num(s.get('max_mm'))}")
-        parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {num(s.get('cv_rmse_mm'))}, "
-                     f"predicted residual RMS {num(s.get('predicted_residual_rms_mm'))}")
+        if s.get("n_neurons") is not None:
+            parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {num(s.get('cv_rmse_mm'))}, "
+                         f"predicted residual RMS {num(s.get('predicted_residual_rms_mm'))}")
+        else:
+            parts.append(f"correction model: {s.get('model')}, CV RMSE {num(s.get('cv_rmse_mm'))}")
     return " · ".join(esc(p) for p in parts)
 
 
@@ -79,18 +82,31 @@ def _summary_section(result) -> str:
         ("deviation max |δ|", num(s.get("max_mm")), "full field"),
         ("deviation RMS x", num(s.get("rms_x_mm")), ""),
         ("deviation RMS y", num(s.get("rms_y_mm")), ""),
-        ("CV RMSE of the correction model", cv, f"{result.options.folds}-fold, mean ± std over folds"),
-        ("neurons", num(s.get("n_neurons"), ""), "Gaussian RBF centres"),
-        ("spread σ", num(s.get("spread_mm")), "chosen by cross-validation"),
-        ("MSE goal", f"{float(s.get('mse_goal_mm2', np.nan)):.1e} mm²", "chosen by cross-validation"),
+        ("correction model", esc(str(s.get("model", "ols-rbf"))), "--model"),
+        ("CV RMSE of the correction model", cv, f"{result.options.folds}-fold"
+         + (", mean ± std over folds" if s.get("cv_rmse_std_mm") is not None else "")),
+        *([("neurons", num(s.get("n_neurons"), ""), "Gaussian RBF centres"),
+           ("spread σ", num(s.get("spread_mm")), "chosen by cross-validation"),
+           ("MSE goal", f"{float(s.get('mse_goal_mm2', np.nan)):.1e} mm²", "chosen by cross-validation")]
+          if s.get("n_neurons") is not None else []),
         ("plate tilt", num(s.get("plate_tilt_deg"), "°"), "plate normal vs scanner z"),
-        ("in-plane rotation", num(s.get("in_plane_rotation_deg"), "°"), "scanner frame → galvo frame"),
+        ("in-plane rotation", num(s.get("in_plane_rotation_deg"), "°"),
+         "scanner frame → galvo frame" + (", seen mirrored (from the back)" if s.get("mirrored") else "")),
+        ("orientation chosen by", esc(str(s.get("orientation_method", ""))), "orientation mark, rotation hint, "
+         "galvo model, or assumed"),
+        ("galvo-model orientation margin", num(s.get("orientation_margin"), ""),
+         "residual of the best other orientation ÷ the chosen one's (≥ 2 decides alone)"),
         ("plane fit RMS", num(s.get("plane_rms_mm")), f"inlier fraction {num(s.get('plane_inlier_fraction'), '')}"),
-        ("points in cloud", num(s.get("n_points"), ""), ""),
+        (("pixels in image" if "image_pixel_mm" in s else "points in cloud"), num(s.get("n_points"), ""), ""),
         ("runtime", num(s.get("runtime_s"), "s"), "whole scan flow"),
-        ("RBF training", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
+        ("model fitting", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
     ]
     out = ["<h2>Summary</h2>", table(["quantity", "value", "note"], rows, left_cols=1)]
+    if str(s.get("orientation_method", "")).startswith("assumed"):
+        out.append('<div class="warn">The orientation was assumed (plate within ±35° of upright): the galvo '
+                   'field cannot tell quarter turns apart (margin '
+                   f'{esc(num(s.get("orientation_margin"), ""))}). If the plate lay otherwise, rerun with '
+                   '--rotation-hint-deg or declare [fiducial] orientation_mark.</div>')
     if result.missing_ids:
         items = []
         for i in result.missing_ids:
@@ -272,7 +288,7 @@ def _field_figure(result) -> str:
     ax.set_xlabel("wanted x (mm)")
     ax.set_ylabel("wanted y (mm)")
     return img(png_b64(fig), "correction field",
-                f"Correction field of the RBF model: command offset K − Q over the correction grid "
+                f"Correction field of the model: command offset K − Q over the correction grid "
                 f"({len(xy):,} nodes, colour = magnitude in mm); arrows show the offset at {len(pick)} "
                 f"subsampled nodes, <b>magnified {k:g}×</b> (key arrow {key:g} mm).")
 
@@ -296,7 +312,20 @@ def _cv_edge_note(sel) -> str:
             + ": the best setting may lie outside the searched grid.")
 
 
+def _galvo_model_section(result) -> str:
+    mc = result.grid_model
+    rows = [[esc(k), num(v, "")] for k, v in mc.cv_rmse_mm.items()]
+    out = ["<h2>Correction model</h2>",
+           f"<p>Model <b>{esc(mc.model.kind)}</b> (the grid flow's galvo models: paper 004 eqs. 1–5 physical "
+           f"scanner plus a smoothing thin-plate spline, a spline alone, or a cubic), fitted to nominal → "
+           f"measured positions; {mc.folds}-fold cross-validation of every model on the same folds:</p>",
+           table(["model", "CV RMSE (mm)"], rows), _field_figure(result)]
+    return "\n".join(out)
+
+
 def _model_section(result) -> str:
+    if result.grid_model is not None:
+        return _galvo_model_section(result)
     sel = result.selection
     out = ["<h2>Correction model</h2>",
            f"<p>Gaussian RBF network with <b>{int(result.model.n_neurons)} neurons</b>, spread σ = "
@@ -323,6 +352,16 @@ def _model_section(result) -> str:
                "wanted position to command directly (trained on measured P → Q − P), so no error is "
                "evaluated at the wrong place.</p>")
     return "\n".join(out)
+
+
+def _image_section(result) -> tuple:
+    s = result.summary
+    h, w = s.get("image_shape", [0, 0])
+    note = (f"Image {w} × {h} pixels, {s.get('image_bits')} bit, pixel {num(s.get('image_pixel_mm'))} "
+            f"(from the {s.get('image_pixel_size_from')}); "
+            + ("marks brighter than the plate, so the grey values were inverted; " if s.get("image_inverted") else "")
+            + "no plane fit or projection: the image is the plate raster (x = columns, y = rows).")
+    return ("<h2>Image</h2>", f"<p>{esc(note)}</p>")
 
 
 def _render_3d(result) -> str:
@@ -410,7 +449,8 @@ def _fiducial_crops(result) -> str:
         scale = float(f["ring_radius_scale"][i])
         r, c = int(f["row"][i]), int(f["col"][i])
         inten, ext, (r0, r1, c0, c1) = _crop(np.asarray(raster.intensity, float), raster, uv, half)
-        valid = np.asarray(raster.valid)[r0:r1, c0:c1]
+        valid = (np.ones(inten.shape, bool) if raster.valid is None
+                 else np.asarray(raster.valid)[r0:r1, c0:c1])
         panels = [(np.ma.masked_array(inten, ~valid), "intensity (raster)"),
                   (np.asarray(edges.filtered)[r0:r1, c0:c1], "median filtered"),
                   (np.asarray(edges.edges)[r0:r1, c0:c1], "Canny edges"),
@@ -486,8 +526,7 @@ def scan_report_html(result: "ScanResult") -> str:
         _histogram_figures(result),
         _stats_table(result.stats),
         _model_section(result),
-        "<h2>Point cloud</h2>",
-        _render_3d(result),
+        *(_image_section(result) if "image_pixel_mm" in s else ("<h2>Point cloud</h2>", _render_3d(result))),
         "<h2>Detected fiducials</h2>",
         _fiducial_crops(result),
         _footer(),

@@ -35,6 +35,8 @@ def filter_raster(raster: Raster, median_px: int = 5) -> np.ndarray:
     (normalised convolution; 5 x 5 where that is empty too, else the plate's
     median), so rings keep their shape through the median filter.
     """
+    if raster.valid is None:
+        return cv2.medianBlur(np.ascontiguousarray(raster.intensity, np.float32), median_px)
     valid = raster.valid.astype(np.float32)
     img = np.where(raster.valid, raster.intensity, 0).astype(np.float32)
     out = img.copy()
@@ -149,22 +151,23 @@ class RingFit:
     ok: np.ndarray
 
 
-def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float):
-    """Raw samples (u, v, I) in a square window around each centre; mask = valid & inside."""
+def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float, stride: int = 1):
+    """Raw samples (u, v, I) in a square window around each centre (every ``stride``-th cell); mask = valid & inside."""
     half = int(np.ceil(radius_mm / raster.pixel_mm)) + 1
-    offs = np.arange(-half, half + 1)
+    offs = np.arange(-(half // stride) * stride, half + 1, stride)
     cr = np.rint(raster.to_pixel(uv0_mm)).astype(int)
     rr = cr[:, 1, None, None] + offs[None, :, None]
     cc = cr[:, 0, None, None] + offs[None, None, :]
-    nrow, ncol = raster.valid.shape
+    nrow, ncol = raster.intensity.shape
     inb = (rr >= 0) & (rr < nrow) & (cc >= 0) & (cc < ncol)
     rr = np.clip(rr, 0, nrow - 1)
     cc = np.clip(cc, 0, ncol - 1)
     k = len(uv0_mm)
-    u = raster.u_mm[rr, cc].reshape(k, -1)
-    v = raster.v_mm[rr, cc].reshape(k, -1)
+    su, sv, sval = raster.samples(rr, cc)
+    u = np.broadcast_to(su, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
+    v = np.broadcast_to(sv, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
     i = raster.intensity[rr, cc].reshape(k, -1).astype(np.float64)
-    m = (raster.valid[rr, cc] & inb).reshape(k, -1)
+    m = (np.broadcast_to(sval, np.broadcast_shapes(rr.shape, cc.shape)) & inb).reshape(k, -1)
     u = np.where(m, u, 0.0)
     v = np.where(m, v, 0.0)
     i = np.where(m, i, 0.0)
@@ -227,7 +230,8 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
         f, jac = _model(p, u, v, radii)
         r = np.where(mask, y - f, 0.0)
         absr = np.abs(r)
-        scale = np.maximum(_masked_median(absr, mask) * 1.4826, 1e-9)
+        sub = max(1, absr.shape[1] // 2048)       # wide rows (fine images): the scale from every sub-th sample
+        scale = np.maximum(_masked_median(absr[:, ::sub], mask[:, ::sub]) * 1.4826, 1e-9)
         wts = np.where(mask, np.minimum(1.0, huber_k * scale[:, None] / np.maximum(absr, 1e-12)), 0.0)
         cost = (wts * r * r).sum(axis=1)
         jac = jac * free
@@ -248,7 +252,8 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     return p, scale
 
 
-def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) -> RingFit:
+def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
+                 coarse: Raster | None = None) -> RingFit:
     """Sub-pixel double-ring centres by a robust fit to the raw samples.
 
     The model is b + a * sum_k exp(-(rho - r_k (1 + m))^2 / (2 w^2)) plus a
@@ -266,16 +271,28 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         Starting centres, plate frame (mm).
     radii_mm : sequence of float
         Nominal ring radii.
+    coarse : Raster, optional
+        An area-averaged copy of a fine ``raster`` (images): the wide-line
+        capture pass runs on it, the fine fit on ``raster``.
     """
     radii = tuple(float(r) for r in radii_mm)
+    # fine images (cells < 0.05 mm): every stride-th cell (~0.06 mm apart, 3 across the 0.2 mm ring gap)
+    # and, in the fine fit, only a band of +-0.3 mm around the rings; about 100 rings per batch at 0.1 mm
+    # cells, fewer on fine images
+    fine = raster.pixel_mm < 0.05
+    stride = max(1, int(round(0.06 / raster.pixel_mm))) if fine else 1
+    first, stride1 = (coarse, 1) if coarse is not None else (raster, stride)
+    cell = raster.pixel_mm * stride
+    chunk = max(2, min(chunk, int(chunk * (cell / 0.1) ** 2)))
     reach = max(radii) + 0.5
     inner = max(min(radii) - 0.5, 0.0)
+    reach_b, inner_b = (max(radii) + 0.3, max(min(radii) - 0.3, 0.0)) if fine else (reach, inner)
     out = {k: [] for k in ("uv", "m", "w", "a", "rms", "n", "shift")}
     free_a = np.array([1, 1, 1, 1, 1, 0, 1, 1], float)
     free_b = np.ones(8)
     for s in range(0, len(uv0_mm), chunk):
         uv0 = np.asarray(uv0_mm[s:s + chunk], float)
-        u, v, y, valid = _gather(raster, uv0, reach)
+        u, v, y, valid = _gather(first, uv0, reach, stride1)
         rho0 = np.hypot(u - uv0[:, :1], v - uv0[:, 1:])
         mask, u, v, y = _compact(valid & (rho0 < reach) & (rho0 > inner), u, v, y)
         b0 = _masked_median(y, mask)
@@ -287,9 +304,9 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         p[:, 5] = 0.15
         p, _ = _gauss_newton(p, u, v, y, mask, radii, 6, free_a)
         # re-centre the window on the new centre before the fine fit
-        u, v, y, valid = _gather(raster, p[:, :2], reach)
+        u, v, y, valid = _gather(raster, p[:, :2], reach_b, stride)
         rho1 = np.hypot(u - p[:, :1], v - p[:, 1:2])
-        mask, u, v, y = _compact(valid & (rho1 < reach) & (rho1 > inner), u, v, y)
+        mask, u, v, y = _compact(valid & (rho1 < reach_b) & (rho1 > inner_b), u, v, y)
         p[:, 5] = np.clip(p[:, 5], 0.03, 0.1)
         p, scale = _gauss_newton(p, u, v, y, mask, radii, 7, free_b)
         out["uv"].append(p[:, :2])
@@ -300,7 +317,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96) 
         out["n"].append(mask.sum(axis=1))
         out["shift"].append(np.hypot(*(p[:, :2] - uv0).T))
     cat = {k: np.concatenate(v) for k, v in out.items()}
-    n_full = np.pi * (reach ** 2 - inner ** 2) / raster.pixel_mm ** 2
+    n_full = np.pi * (reach_b ** 2 - inner_b ** 2) / cell ** 2
     ok = ((np.abs(cat["m"]) < 0.06) & (np.abs(cat["a"]) > 3 * cat["rms"] / np.sqrt(10))
           & (cat["shift"] < 1.5) & (cat["n"] > 0.4 * n_full) & np.all(np.isfinite(cat["uv"]), axis=1))
     return RingFit(uv_mm=cat["uv"], radius_scale=1 + cat["m"], width_mm=cat["w"], contrast=cat["a"],

@@ -21,6 +21,17 @@ class PlateSpec:
     d_mm: float = 490.0
     e_mm: float = 22.0
     grid_step_mm: float = 1.0
+    orientation_mark: tuple = ()     # (row, col) of a site left unmarked; () none
+
+    @property
+    def mark_id(self):
+        """Id of the unmarked orientation site, or None."""
+        return self.orientation_mark[0] * self.cols + self.orientation_mark[1] if self.orientation_mark else None
+
+    @property
+    def marked_ids(self) -> list:
+        """Ids of the sites that carry a fiducial."""
+        return [i for i in range(self.n_fiducials) if i != self.mark_id]
 
     @property
     def n_fiducials(self) -> int:

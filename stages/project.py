@@ -16,7 +16,8 @@ class Raster:
     ``u_mm``/``v_mm`` hold the mean in-plane position of the points that fell
     in each cell (NaN where none did), so sub-pixel fits can use where the
     samples really were rather than cell centres. ``valid`` marks cells with
-    at least one on-plane point.
+    at least one on-plane point. An image (``stages.plate_image``) has
+    ``u_mm``/``v_mm``/``valid`` None: samples sit at the cell centres, all valid.
     """
 
     intensity: np.ndarray
@@ -26,6 +27,13 @@ class Raster:
     u0_mm: float
     v0_mm: float
     pixel_mm: float
+
+    def samples(self, rr: np.ndarray, cc: np.ndarray) -> tuple:
+        """In-plane positions (mm) and validity of cells at integer rows/cols (in bounds)."""
+        if self.u_mm is None:
+            return ((cc + 0.5) * self.pixel_mm + self.u0_mm, (rr + 0.5) * self.pixel_mm + self.v0_mm,
+                    np.ones(np.shape(rr), bool))
+        return self.u_mm[rr, cc], self.v_mm[rr, cc], self.valid[rr, cc]
 
     def to_pixel(self, uv_mm: np.ndarray) -> np.ndarray:
         """(u, v) mm -> (col, row) pixel coordinates (cell centres at integers)."""

@@ -19,25 +19,33 @@ class GridIndex:
     pitch_mm: float
 
 
-def index_grid(uv_mm: np.ndarray, rows: int, cols: int, pitch_mm: float,
-               max_rotation_deg: float = 45.0, pitch_tolerance: float = 0.04) -> GridIndex:
-    """Assign each detected centre its row and column.
+@dataclass(frozen=True)
+class Lattice:
+    """Integer lattice coordinates of detected centres in the grid's own frame.
 
-    The grid may be turned by any angle within +-45 deg (the plate spec allows
-    +-15 deg), shifted, and have missing fiducials. Row index grows with v,
-    column index with u.
+    ``k`` (n, 2) are steps along the two lattice directions (the first within
+    +-45 deg of +u); ``good`` marks centres within 0.35 pitch of a lattice site.
+    """
+
+    k: np.ndarray
+    good: np.ndarray
+    theta_rad: float
+    pitch_mm: float
+
+
+def lattice_coords(uv_mm: np.ndarray, pitch_mm: float, pitch_tolerance: float = 0.04) -> Lattice:
+    """Lattice directions, offset and integer coordinates of detected centres (plate frame, mm).
 
     Raises
     ------
     MarkcalError
-        If the spacing of the detected centres does not match ``pitch_mm``.
+        If fewer than 4 centres, or their spacing does not match ``pitch_mm``.
     """
     uv = np.asarray(uv_mm, float)
     n = len(uv)
     if n < 4:
         raise MarkcalError(f"only {n} fiducials detected: cannot identify the grid")
-    tree = cKDTree(uv)
-    dist, nb = tree.query(uv, k=5)
+    dist, nb = cKDTree(uv).query(uv, k=5)
     nn = np.median(dist[:, 1])
     if abs(nn / pitch_mm - 1) > pitch_tolerance:
         raise MarkcalError(f"fiducial pitch in the scan is {nn:.3f} mm but the plate spec says "
@@ -46,33 +54,55 @@ def index_grid(uv_mm: np.ndarray, rows: int, cols: int, pitch_mm: float,
     vec = uv[nb[:, 1:]] - uv[:, None, :]
     ang = np.arctan2(vec[..., 1], vec[..., 0])[ok]
     theta = np.angle(np.sum(np.exp(4j * ang))) / 4
-    if abs(np.degrees(theta)) > max_rotation_deg:
-        raise MarkcalError(f"grid is turned by {np.degrees(theta):.1f} deg, more than allowed")
     c, s = np.cos(-theta), np.sin(-theta)
     local = uv @ np.array([[c, s], [-s, c]]) / pitch_mm
     # lattice offset per axis (circular mean of fractional parts), then integer indices
     off = np.angle(np.exp(2j * np.pi * local).sum(axis=0)) / (2 * np.pi)
     k = np.rint(local - off).astype(int)
-    resid = np.abs(local - off - k).max(axis=1)
-    good = resid < 0.35
-    col = np.full(n, -1)
-    row = np.full(n, -1)
-    for axis, size, out in ((0, cols, col), (1, rows, row)):
-        kk = k[good, axis]
-        lo, hi = np.percentile(kk, [0, 100]).astype(int) if len(kk) else (0, 0)
-        span = hi - lo + 1
-        if span > size:
-            # spurious far detections: keep the densest window of `size`
-            counts = [np.sum((kk >= a) & (kk < a + size)) for a in range(lo, hi - size + 2)]
-            lo = lo + int(np.argmax(counts))
-        elif span < size:
-            # whole edge rows missing: centre the detected block
-            lo = lo - (size - span) // 2
-        out[good] = k[good, axis] - lo
-    inside = (col >= 0) & (col < cols) & (row >= 0) & (row < rows)
-    col[~inside] = -1
-    row[~inside] = -1
-    return GridIndex(row=row, col=col, rotation_deg=float(np.degrees(theta)), pitch_mm=float(nn))
+    good = np.abs(local - off - k).max(axis=1) < 0.35
+    return Lattice(k=k, good=good, theta_rad=float(theta), pitch_mm=float(nn))
+
+
+def place_block(k_axis: np.ndarray, good: np.ndarray, size: int) -> np.ndarray:
+    """Index 0..size-1 along one axis from integer lattice steps (-1: off the grid).
+
+    Spurious far detections: the densest window of ``size`` is kept; whole
+    edge rows missing: the detected block is centred.
+    """
+    kk = k_axis[good]
+    lo, hi = (int(kk.min()), int(kk.max())) if len(kk) else (0, 0)
+    span = hi - lo + 1
+    if span > size:
+        counts = [np.sum((kk >= a) & (kk < a + size)) for a in range(lo, hi - size + 2)]
+        lo = lo + int(np.argmax(counts))
+    elif span < size:
+        lo = lo - (size - span) // 2
+    out = np.where(good, k_axis - lo, -1)
+    return np.where((out >= 0) & (out < size), out, -1)
+
+
+def index_grid(uv_mm: np.ndarray, rows: int, cols: int, pitch_mm: float,
+               max_rotation_deg: float = 45.0, pitch_tolerance: float = 0.04) -> GridIndex:
+    """Assign each detected centre its row and column.
+
+    The grid may be turned by any angle within +-45 deg (the plate spec allows
+    +-15 deg), shifted, and have missing fiducials. Row index grows with v,
+    column index with u. Other orientations: ``stages.orientation``.
+
+    Raises
+    ------
+    MarkcalError
+        If the spacing of the detected centres does not match ``pitch_mm``.
+    """
+    lat = lattice_coords(uv_mm, pitch_mm, pitch_tolerance)
+    if abs(np.degrees(lat.theta_rad)) > max_rotation_deg:
+        raise MarkcalError(f"grid is turned by {np.degrees(lat.theta_rad):.1f} deg, more than allowed")
+    col = place_block(lat.k[:, 0], lat.good, cols)
+    row = place_block(lat.k[:, 1], lat.good, rows)
+    off = (col < 0) | (row < 0)
+    col[off] = -1
+    row[off] = -1
+    return GridIndex(row=row, col=col, rotation_deg=float(np.degrees(lat.theta_rad)), pitch_mm=lat.pitch_mm)
 
 
 @dataclass(frozen=True)

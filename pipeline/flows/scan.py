@@ -11,15 +11,18 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from markcal.pipeline.config import read_plate_spec
-from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
-from markcal.stages import detect, galvo, rbf
+from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext, spec_beside
+from markcal.stages import detect, galvo, orientation, rbf
 from markcal.stages.deviation import deviation_stats, grid_nodes
 from markcal.stages.errors import MarkcalError
 from markcal.stages.io import read_cloud
 from markcal.stages.plane import Plane, fit_plane, from_plane
 from markcal.stages.plate import PlateSpec, nominal_grid
+from markcal.stages.plate_image import (IMAGE_EXTS, check_image_size, coarse_raster, flat_plane, image_raster,
+                                        read_plate_image)
 from markcal.stages.project import Raster, project
-from markcal.stages.register import index_grid, rigid_fit, robust_rigid_fit
+from markcal.stages.galvo_fit import KINDS, choose_model
+from markcal.stages.register import Rigid2D, lattice_coords, rigid_fit, robust_rigid_fit
 
 #: spreads tried by the cross-validation, in units of the grid pitch
 SPREADS_PER_PITCH = (1.0, 1.5, 2.0, 3.0, 4.5, 6.5, 9.0)
@@ -27,6 +30,13 @@ SPREADS_PER_PITCH = (1.0, 1.5, 2.0, 3.0, 4.5, 6.5, 9.0)
 MSE_GOALS_MM2 = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 5e-4, 1e-3)
 #: areas of paper Table 1: name -> half width (None: the full field)
 AREAS = {"full": None, "inner_150": 75.0, "inner_50": 25.0}
+#: correction models: the paper's OLS RBF network, or the grid flow's galvo models (stages/galvo_fit)
+MODELS = ("ols-rbf", *KINDS, "auto")
+#: how the orientation is decided without a hint or an orientation mark
+ORIENTATIONS = ("upright", "auto")
+MIRRORS = ("no", "yes", "auto")
+#: coarse scans: raster cells this many point spacings wide (1.2 was measured worse: 270 vs 284 of 294 found)
+COARSE_CELL = 1.0
 
 
 @dataclass(frozen=True)
@@ -39,6 +49,11 @@ class ScanOptions:
     seed: int = 0
     max_neurons: int = 200
     validation: bool = False
+    model: str = "ols-rbf"
+    rotation_hint_deg: float | None = None
+    orientation: str = "upright"     # no hint, no mark: "upright" (within +-35 deg) or "auto" (galvo model)
+    mirror: str = "no"               # the measurement seen from the back: "no", "yes", "auto"
+    pixel_size_mm: float | None = None   # images: overrides the file's resolution tags
 
 
 @dataclass(frozen=True)
@@ -71,15 +86,18 @@ class ScanResult:
     preview_xyz_mm: np.ndarray = field(repr=False)
     preview_intensity: np.ndarray = field(repr=False)
     registration_angle_deg: float = 0.0
+    orientation: orientation.Choice | None = field(default=None, repr=False)
+    grid_model: object = field(default=None, repr=False)   # galvo_fit.ModelChoice (models other than ols-rbf)
 
 
 def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, progress=None) -> ScanResult:
-    """Run the scan flow on one cloud.
+    """Run the scan flow on one cloud or image.
 
     Parameters
     ----------
     cloud_path : path
-        PLY, PCD, CSV/TXT or NPY cloud in mm (scanner frame).
+        PLY, PCD, CSV/TXT or NPY cloud in mm (scanner frame), or a TIFF/PNG/JPEG
+        image of the plate (pixel size from its dpi tags or ``options.pixel_size_mm``).
     spec : PlateSpec
         What was marked.
     progress : callable, optional
@@ -94,6 +112,10 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
     try:
+        if file_ext(cloud_path) in IMAGE_EXTS:
+            say("reading image")
+            image = read_plate_image(cloud_path, opt.pixel_size_mm)
+            return _run_image(image, str(cloud_path), spec, opt, say, t0)
         say("reading cloud")
         cloud = read_cloud(cloud_path)
         return _run(cloud, str(cloud_path), spec, opt, say, t0)
@@ -101,19 +123,23 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
         raise exc.with_path(cloud_path) from None
 
 
-def _detect(raster, spec, opt, say):
+def _detect(raster, spec, opt, say, fine=None, spacing_mm=None):
+    """Coarse centres on ``raster``, sub-pixel ring fits on ``fine`` (default: the same raster)."""
     say("median filter, Canny, closing")
-    filtered = detect.filter_raster(raster, opt.median_px)
+    # the median filter spans about 0.5 mm (5 cells of 0.1 mm) whatever the cell size
+    med = max(3, int(round(opt.median_px * 0.1 / raster.pixel_mm)) | 1) if raster.pixel_mm > 0.1 else opt.median_px
+    filtered = detect.filter_raster(raster, med)
     edges = detect.edge_images(filtered)
     say("circular Hough transform")
-    r_px = max(spec.ring_radii_mm) / opt.pixel_mm
-    coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / opt.pixel_mm,
-                                  2 * spec.n_fiducials + 20)
+    px = raster.pixel_mm
+    r_px = max(spec.ring_radii_mm) / px
+    coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / px, 2 * spec.n_fiducials + 20)
     if len(coarse) == 0:
-        raise MarkcalError("no circles found on the plate")
-    coarse = detect.match_centres(edges.filtered, coarse, [r / opt.pixel_mm for r in spec.ring_radii_mm])
+        raise MarkcalError("no circles found on the plate" + _what_i_saw(spec, raster, spacing_mm))
+    coarse = detect.match_centres(edges.filtered, coarse, [r / px for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
-    fit = detect.refine_rings(raster, raster.to_mm(coarse), spec.ring_radii_mm)
+    fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm,
+                              coarse=raster if fine is not None else None)
     return edges, fit
 
 
@@ -122,27 +148,59 @@ def _run(cloud, source, spec, opt, say, t0):
     plane = fit_plane(cloud.xyz_mm, seed=opt.seed)
     say("projecting onto the plate plane")
     raster = project(cloud.xyz_mm, cloud.intensity, plane, opt.pixel_mm)
-    edges, fit = _detect(raster, spec, opt, say)
-    n_exp = spec.n_fiducials
+    spacing = point_spacing_mm(raster)
+    if spacing > 1.3 * opt.pixel_mm:
+        # a coarse scan: one cell per point, so the rings are not broken up by empty cells
+        say(f"coarse scan (points {spacing:.2f} mm apart): re-projecting on {spacing:.2f} mm cells")
+        raster = project(cloud.xyz_mm, cloud.intensity, plane, float(np.round(COARSE_CELL * spacing, 3)))
+    edges, fit = _detect(raster, spec, opt, say, spacing_mm=spacing)
+    step = max(1, len(cloud.xyz_mm) // 150_000)
+    extra = {"plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
+             "plane_inlier_fraction": plane.inlier_fraction, "n_points": int(len(cloud.xyz_mm)),
+             "point_spacing_mm": spacing, "raster_pixel_mm": raster.pixel_mm}
+    return _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra,
+                   cloud.xyz_mm[::step].astype(np.float32), cloud.intensity[::step].astype(np.float32))
+
+
+def _run_image(image, source, spec, opt, say, t0):
+    """An image of the plate: no plane, no projection; Hough on a ~0.1 mm copy, ring fits on the pixels."""
+    check_image_size(image, spec)
+    fine = image_raster(image)
+    coarse = coarse_raster(fine, opt.pixel_mm)
+    edges, fit = _detect(coarse, spec, opt, say, fine=fine, spacing_mm=image.pixel_mm)
+    extra = {"image_pixel_mm": image.pixel_mm, "image_pixel_size_from": image.pixel_size_from,
+             "image_shape": list(image.intensity.shape), "image_bits": image.bits,
+             "image_inverted": image.inverted, "n_points": int(image.intensity.size)}
+    return _finish(fit, edges, coarse, flat_plane(), source, spec, opt, say, t0, extra,
+                   np.zeros((0, 3), np.float32), np.zeros(0, np.float32))
+
+
+def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, preview_xyz, preview_i):
+    n_exp = len(spec.marked_ids)
     ok = fit.ok
     if ok.sum() >= 3:
         scale = float(np.median(fit.radius_scale[ok]))
     else:
         scale = 1.0
     if ok.sum() < n_exp / 2:
-        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges, spec, opt))
+        seen = extra.get("point_spacing_mm", extra.get("image_pixel_mm"))
+        radii = sorted(spec.ring_radii_mm)
+        resolved = seen is None or (radii[-1] - radii[0]) / seen >= 2     # below 2 the blobs merge
+        raise MarkcalError(_few_found_message(int(ok.sum()), n_exp, edges if resolved else None, spec, raster)
+                           + _what_i_saw(spec, raster, seen))
     if abs(scale - 1) > 0.04:
         raise MarkcalError(f"ring radii in the scan are {scale:.3f} x the spec's "
                            f"{list(spec.ring_radii_mm)} mm: wrong plate spec?")
     idx = np.flatnonzero(ok)
     idx = idx[detect.dedupe(fit.uv_mm[idx], fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9),
                       0.5 * spec.pitch_mm)]
-    say("identifying rows and columns")
-    uv = fit.uv_mm[idx]
-    gi = index_grid(uv, spec.rows, spec.cols, spec.pitch_mm)
-    on = gi.row >= 0
-    idx, uv, row, col = idx[on], uv[on], gi.row[on], gi.col[on]
-    ids = row * spec.cols + col
+    say("identifying rows, columns and the plate's orientation")
+    uv_all = fit.uv_mm[idx]
+    r_all, c_all, q_all = nominal_grid(spec)
+    choice = _orientation(uv_all, spec, q_all, opt)
+    cand = choice.chosen
+    on = cand.ids >= 0
+    idx, uv, row, col, ids = idx[on], uv_all[on], cand.row[on], cand.col[on], cand.ids[on]
     # two candidates on one site: keep the better fit
     order = np.lexsort((-fit.contrast[idx] / np.maximum(fit.rms[idx], 1e-9), ids))
     first = np.r_[True, ids[order][1:] != ids[order][:-1]]
@@ -152,16 +210,18 @@ def _run(cloud, source, spec, opt, say, t0):
         raise MarkcalError(f"only {len(ids)} of {n_exp} fiducials could be placed on the grid")
 
     say("rigid registration to the nominal grid")
-    r_all, c_all, q_all = nominal_grid(spec)
     q = q_all[ids]
-    tf, used = robust_rigid_fit(uv, q, outlier_mm=0.3 * spec.pitch_mm)
-    mirrored = rigid_fit(uv[used], q[used], allow_reflection=True)
-    if mirrored.reflection:
-        r_proper = np.sqrt(np.mean(np.sum((tf.apply(uv[used]) - q[used]) ** 2, axis=1)))
-        r_mirror = np.sqrt(np.mean(np.sum((mirrored.apply(uv[used]) - q[used]) ** 2, axis=1)))
-        if r_mirror < 0.5 * r_proper:
-            raise MarkcalError("the grid registers only through a reflection: the scanner's x and y "
-                               "axes are mirrored relative to the galvo's")
+    flip = np.diag([1.0, -1.0]) if cand.mirrored else np.eye(2)
+    tf_f, used = robust_rigid_fit(uv @ flip, q, outlier_mm=0.3 * spec.pitch_mm)
+    tf = Rigid2D(rotation=tf_f.rotation @ flip, translation_mm=tf_f.translation_mm)
+    if not cand.mirrored:
+        mirrored = rigid_fit(uv[used], q[used], allow_reflection=True)
+        if mirrored.reflection:
+            r_proper = np.sqrt(np.mean(np.sum((tf.apply(uv[used]) - q[used]) ** 2, axis=1)))
+            r_mirror = np.sqrt(np.mean(np.sum((mirrored.apply(uv[used]) - q[used]) ** 2, axis=1)))
+            if r_mirror < 0.5 * r_proper:
+                raise MarkcalError("the grid registers only through a reflection: the scanner's x and y "
+                                   "axes are mirrored relative to the galvo's (use --mirror yes or auto)")
     if used.sum() < n_exp / 2:
         raise MarkcalError("registration failed: too few fiducials agree with the nominal grid")
     p = tf.apply(uv)
@@ -178,35 +238,29 @@ def _run(cloud, source, spec, opt, say, t0):
         "contrast": fit.contrast[idx], "fit_rms": fit.rms[idx], "n_samples": fit.n_points[idx],
         "used_in_registration": used.astype(int),
     }
-    missing = sorted(set(range(n_exp)) - set(ids.tolist()))
+    missing = sorted(set(spec.marked_ids) - set(ids.tolist()))
     stats = {name: deviation_stats(q, delta, hw) for name, hw in AREAS.items()}
 
-    say("RBF network: cross-validated spread and MSE goal")
-    t_rbf = time.perf_counter()
-    spreads = np.array(SPREADS_PER_PITCH) * spec.pitch_mm
-    sel_ = rbf.select(p, delta, spreads, MSE_GOALS_MM2, opt.folds, opt.seed, opt.max_neurons)
-    model = rbf.train(p, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
-    rbf_s = time.perf_counter() - t_rbf
-    model_eq9 = rbf.train(q, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
-    forward = rbf.train(q, -delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
-
-    say("correction grid and corrected targets")
     hx, hy = spec.half_extent_mm
     nodes = grid_nodes(hx, hy, spec.grid_step_mm)
-    dxy = model(nodes)
-    k = q_all + model(q_all)
+    t_rbf = time.perf_counter()
+    if opt.model == "ols-rbf":
+        say("RBF network: cross-validated spread and MSE goal")
+        fitted = _fit_ols_rbf(p, q, delta, nodes, q_all, spec, opt)
+    else:
+        say(f"galvo model {opt.model}: k-fold cross-validation")
+        fitted = _fit_galvo_model(p, q, nodes, q_all, spec, opt)
+    rbf_s = time.perf_counter() - t_rbf
+    dxy, k = fitted["dxy"], fitted["k"]
     ax, ay, dfr = galvo.inverse(k[:, 0], k[:, 1], spec.d_mm, spec.e_mm)
-    targets = {"id": np.arange(n_exp), "row": r_all, "col": c_all,
+    targets = {"id": np.arange(spec.n_fiducials), "row": r_all, "col": c_all,
                "x_target_mm": q_all[:, 0], "y_target_mm": q_all[:, 1],
                "x_cmd_mm": k[:, 0], "y_cmd_mm": k[:, 1],
                "alpha_x_deg": np.degrees(ax), "alpha_y_deg": np.degrees(ay), "dfr_mm": dfr}
-    # predicted residuals with the fitted forward model: landing(K) ~ K + fwd(K)
-    inside = np.all(np.abs(nodes) <= [hx, hy], axis=1)
-    tgt = nodes[inside]
-    predicted = {}
-    for name, cmd in (("inverse", tgt + model(tgt)), ("eq9", tgt + model_eq9(tgt))):
-        land = cmd + forward(cmd)
-        predicted[name] = deviation_stats(tgt, land - tgt)
+    targets = {key: v[spec.marked_ids] for key, v in targets.items()} if spec.mark_id is not None else targets
+    predicted = fitted["predicted"]
+    sel_ = fitted["selection"]
+    model = fitted["model"]
 
     full = stats["full"]
     summary = {
@@ -219,35 +273,117 @@ def _run(cloud, source, spec, opt, say, t0):
         "max_x_mm": full["max_x_mm"], "max_y_mm": full["max_y_mm"],
         "rms_150_mm": stats["inner_150"].get("rms_mm"), "max_150_mm": stats["inner_150"].get("max_mm"),
         "rms_50_mm": stats["inner_50"].get("rms_mm"), "max_50_mm": stats["inner_50"].get("max_mm"),
-        "cv_rmse_mm": sel_.cv_rmse_mm, "cv_rmse_std_mm": sel_.cv_rmse_std_mm,
-        "n_neurons": model.n_neurons, "spread_mm": sel_.spread_mm, "mse_goal_mm2": sel_.mse_goal_mm2,
-        "predicted_residual_rms_mm": predicted["inverse"]["rms_mm"],
-        "predicted_residual_eq9_rms_mm": predicted["eq9"]["rms_mm"],
-        "plate_tilt_deg": plane.tilt_deg, "plane_rms_mm": plane.rms_mm,
-        "plane_inlier_fraction": plane.inlier_fraction,
+        **fitted["summary"],
+        **extra,
         "in_plane_rotation_deg": -tf.angle_deg,
-        "n_points": int(len(cloud.xyz_mm)),
+        "mirrored": bool(cand.mirrored),
+        "orientation_method": choice.method,
+        "orientation_margin": choice.margin if np.isfinite(choice.margin) else None,
+        "orientation_candidates": [f"{c.label}: {c.phys_rms_mm * 1000:.2f} um" for c in choice.candidates],
+        "model": opt.model if opt.model != "auto" else f"auto: {fitted['grid_model'].model.kind}",
         "rbf_training_s": rbf_s,
         "runtime_s": time.perf_counter() - t0,
     }
-    step = max(1, len(cloud.xyz_mm) // 150_000)
     return ScanResult(
         source=source, spec=spec, options=opt, fiducials=fid, missing_ids=missing, stats=stats,
-        model=model, model_eq9=model_eq9, forward_model=forward, selection=sel_,
+        model=model, model_eq9=fitted["model_eq9"], forward_model=fitted["forward"], selection=sel_,
         grid_xy_mm=nodes, grid_dxy_mm=dxy, targets=targets, predicted=predicted, summary=summary,
         plane=plane, raster=raster, edges=edges,
-        preview_xyz_mm=cloud.xyz_mm[::step].astype(np.float32),
-        preview_intensity=cloud.intensity[::step].astype(np.float32),
-        registration_angle_deg=tf.angle_deg)
+        preview_xyz_mm=preview_xyz, preview_intensity=preview_i,
+        registration_angle_deg=tf.angle_deg, orientation=choice, grid_model=fitted["grid_model"])
 
 
-def _few_found_message(n_found, n_exp, edges, spec, opt):
+def _orientation(uv, spec, q_all, opt) -> orientation.Choice:
+    """Index the lattice and choose the plate's orientation (mark, hint, galvo model)."""
+    lat = lattice_coords(uv, spec.pitch_mm)
+    cands = orientation.candidates(uv, lat, q_all, spec.rows, spec.cols, spec.d_mm, spec.e_mm,
+                                   mirror=opt.mirror != "no")
+    if opt.mirror == "yes":
+        cands = [c for c in cands if c.mirrored]
+    hint = opt.rotation_hint_deg
+    upright = hint is None and spec.mark_id is None and opt.orientation == "upright"
+    if upright:
+        hint = 0.0
+    try:
+        choice = orientation.choose(cands, spec.mark_id, hint)
+    except MarkcalError as exc:
+        if upright and "no orientation within" in str(exc):
+            raise MarkcalError(f"the grid lies near 45 deg ({np.degrees(lat.theta_rad):.1f} deg from the "
+                               "scan axes): its orientation is ambiguous; give --rotation-hint-deg "
+                               "or declare [fiducial] orientation_mark in the plate spec") from None
+        raise
+    if upright:
+        return orientation.Choice(choice.chosen, "assumed upright (no hint, no orientation mark)",
+                                  choice.margin, choice.candidates)
+    return choice
+
+
+def _fit_ols_rbf(p, q, delta, nodes, q_all, spec, opt) -> dict:
+    """The paper's OLS RBF network (sec. 2.6), spread and goal by cross-validation."""
+    spreads = np.array(SPREADS_PER_PITCH) * spec.pitch_mm
+    sel_ = rbf.select(p, delta, spreads, MSE_GOALS_MM2, opt.folds, opt.seed, opt.max_neurons)
+    model = rbf.train(p, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+    model_eq9 = rbf.train(q, delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+    forward = rbf.train(q, -delta, sel_.spread_mm, sel_.mse_goal_mm2, opt.max_neurons)
+    hx, hy = spec.half_extent_mm
+    inside = np.all(np.abs(nodes) <= [hx, hy], axis=1)
+    tgt = nodes[inside]
+    predicted = {}
+    # predicted residuals with the fitted forward model: landing(K) ~ K + fwd(K)
+    for name, cmd in (("inverse", tgt + model(tgt)), ("eq9", tgt + model_eq9(tgt))):
+        land = cmd + forward(cmd)
+        predicted[name] = deviation_stats(tgt, land - tgt)
+    summary = {"cv_rmse_mm": sel_.cv_rmse_mm, "cv_rmse_std_mm": sel_.cv_rmse_std_mm,
+               "n_neurons": model.n_neurons, "spread_mm": sel_.spread_mm, "mse_goal_mm2": sel_.mse_goal_mm2,
+               "predicted_residual_rms_mm": predicted["inverse"]["rms_mm"],
+               "predicted_residual_eq9_rms_mm": predicted["eq9"]["rms_mm"]}
+    return {"dxy": model(nodes), "k": q_all + model(q_all), "predicted": predicted, "selection": sel_,
+            "model": model, "model_eq9": model_eq9, "forward": forward, "grid_model": None, "summary": summary}
+
+
+def _fit_galvo_model(p, q, nodes, q_all, spec, opt) -> dict:
+    """The grid flow's galvo models (physical + spline, spline, cubic; auto by k-fold CV)."""
+    mc = choose_model(opt.model, q, p, spec.d_mm, spec.e_mm, opt.folds, opt.seed)
+    gm = mc.model
+    summary = {"cv_rmse_mm": mc.cv_rmse_mm[gm.kind], "cv_rmse_std_mm": None,
+               "cv_rmse_by_model_mm": dict(mc.cv_rmse_mm), "n_neurons": None, "spread_mm": None,
+               "mse_goal_mm2": None, "predicted_residual_rms_mm": None, "predicted_residual_eq9_rms_mm": None}
+    return {"dxy": gm(nodes), "k": q_all + gm(q_all), "predicted": {}, "selection": None, "model": None,
+            "model_eq9": None, "forward": None, "grid_model": mc, "summary": summary}
+
+
+def point_spacing_mm(raster) -> float:
+    """Typical distance (mm) between points: the cell size over the root of the filled fraction of cells
+    in the middle half of the raster (where the plate is; the frame around it is left out)."""
+    h, w = raster.valid.shape
+    mid = raster.valid[h // 4: 3 * h // 4, w // 4: 3 * w // 4]
+    frac = float(mid.mean()) if mid.size else 1.0
+    return raster.pixel_mm / np.sqrt(max(frac, 1e-3))
+
+
+def _what_i_saw(spec, raster, spacing_mm) -> str:
+    """Point spacing and how many samples span the ring gap and the ring line."""
+    if spacing_mm is None:
+        return ""
+    radii = sorted(spec.ring_radii_mm)
+    gap = radii[-1] - radii[0]
+    msg = f"; points are {spacing_mm:.3f} mm apart"
+    if gap > 0:
+        msg += f", so the {gap:g} mm gap between the rings spans {gap / spacing_mm:.1f} samples"
+        if gap / spacing_mm < 3:
+            msg += " (at least 3 are needed)"
+    return msg
+
+
+def _few_found_message(n_found, n_exp, edges, spec, raster):
     """Say how many were found and, when the discs have another size, what size."""
     from scipy import ndimage
-    lab, n = ndimage.label(edges.filled)
+    lab, n = ndimage.label(edges.filled) if edges is not None else (None, 0)
     msg = f"only {n_found} of {n_exp} fiducials found (fewer than half the grid)"
+    if edges is None:          # rings not resolved: the blobs' size says nothing about the radius
+        return msg
     if n:
-        area = np.bincount(lab.ravel())[1:] * opt.pixel_mm ** 2
+        area = np.bincount(lab.ravel())[1:] * raster.pixel_mm ** 2
         big = area[area > 2.0]
         if len(big) >= 4:
             r = float(np.sqrt(np.median(big) / np.pi))
@@ -259,6 +395,8 @@ def _few_found_message(n_found, n_exp, edges, spec, opt):
 
 def _claims(path) -> bool:
     e = file_ext(path)
+    if e in IMAGE_EXTS:
+        return _plate_spec_beside(path)
     if e in (".ply", ".pcd", ".xyz", ".npy"):
         return True
     if e in (".csv", ".txt"):
@@ -267,16 +405,46 @@ def _claims(path) -> bool:
     return False
 
 
+def _plate_spec_beside(path) -> bool:
+    """An image is a plate image when ``<stem>.toml`` or ``plate.toml`` beside it has a ``[grid]`` section
+    (the indents flow, which also reads TIFF, uses ``[array]`` specs)."""
+    import tomllib
+    spec = spec_beside(path, "plate.toml")
+    if spec is None:
+        return False
+    try:
+        with open(spec, "rb") as fh:
+            return isinstance(tomllib.load(fh).get("grid"), dict)
+    except (OSError, ValueError):
+        return False
+
+
+def scan_options(options: dict) -> ScanOptions:
+    """ScanOptions from the descriptor's option dict (CLI or batch.toml), checked."""
+    model, orient, mirror = str(options["model"]), str(options["orientation"]), str(options["mirror"])
+    for name, v, allowed in (("model", model, MODELS), ("orientation", orient, ORIENTATIONS),
+                             ("mirror", mirror, MIRRORS)):
+        if v not in allowed:
+            raise MarkcalError(f"unknown {name} {v!r} (known: {', '.join(allowed)})")
+    hint = options.get("rotation_hint_deg")
+    hint = None if hint is None or not np.isfinite(float(hint)) else float(hint)     # NaN: no hint
+    px = options.get("pixel_size_mm")
+    px = None if px is None or not np.isfinite(float(px)) else float(px)              # NaN: from the file
+    return ScanOptions(seed=int(options["seed"]), validation=bool(options["validation"]), model=model,
+                       rotation_hint_deg=hint, orientation=orient, mirror=mirror, pixel_size_mm=px)
+
+
 def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
     spec = read_plate_spec(spec_path)
-    return run_scan(path, spec, ScanOptions(seed=int(options["seed"]), validation=bool(options["validation"])),
-                    progress=progress)
+    return run_scan(path, spec, scan_options(options), progress=progress)
 
 
 FLOW = FlowDescriptor(
-    name="scan", help="3D scan of a galvo-marked plate -> deviations, correction, report",
+    name="scan", help="3D scan or flatbed image of a galvo-marked plate -> deviations, correction, report",
     claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
-    options={"seed": 0, "validation": False, "no_report": False},
+    options={"seed": 0, "validation": False, "no_report": False, "model": "ols-rbf",
+             "rotation_hint_deg": float("nan"), "orientation": "upright", "mirror": "no",
+             "pixel_size_mm": float("nan")},
     key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
                  Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
                  Figure("max_mm", "deviation max", "mm"), Figure("cv_rmse_mm", "RBF CV RMSE", "mm")),

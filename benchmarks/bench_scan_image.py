@@ -1,0 +1,69 @@
+"""Images of a marked plate through ``markcal scan``: time, peak memory and centre error against truth.
+
+Renders flatbed images of the paper's 190 mm plate (19 x 19) with an independent renderer
+(fixtures/plate_image.py), writes them as files, runs the whole command (``python -m
+markcal.pipeline.cli scan IMAGE --plate plate.toml``, report included) in a child process
+and reads its peak RSS. Issue 22 goals at 1200 dpi: centre error <= 0.1 px RMS, <= 10 s,
+<= 4 GiB.
+
+    python benchmarks/bench_scan_image.py [DPI ...]     (default 1200; repeats: 3)
+"""
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+from markcal.fixtures.plate_image import ImageOptions, render_plate_image, save_plate_image
+from markcal.reports.files import read_csv
+from markcal.stages.plate import PlateSpec
+
+
+def run_once(path, plate, out):
+    t0 = time.perf_counter()
+    p = subprocess.run([sys.executable, "-m", "markcal.pipeline.cli", "scan", path, "--plate", plate,
+                        "--out", out, "--quiet"], capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    if p.returncode:
+        raise SystemExit(p.stderr)
+    rss_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    return wall, rss_kib / 2 ** 20
+
+
+def main(dpis, repeats=3, fmt="tif"):
+    spec = PlateSpec()
+    for dpi in dpis:
+        with tempfile.TemporaryDirectory() as tmp:
+            t0 = time.perf_counter()
+            r = render_plate_image(1, spec, ImageOptions(dpi=dpi, jpeg_quality=None))
+            paths = save_plate_image(tmp, r, fmt=fmt)
+            t_render = time.perf_counter() - t0
+            walls = []
+            for k in range(repeats):
+                wall, rss = run_once(paths["image"], paths["plate.toml"], os.path.join(tmp, f"out{k}"))
+                walls.append(wall)
+            f = read_csv(os.path.join(tmp, "out0", "fiducials.csv"))
+            with open(os.path.join(tmp, "out0", "summary.json")) as fh:
+                s = json.load(fh)
+            ids = f["id"].astype(int)
+            px = r.pixel_mm
+            col = f["x_scanner_mm"] / px - 0.5
+            row = f["y_scanner_mm"] / px - 0.5
+            tc = np.array(r.truth["fiducials"]["col_px"])[ids]
+            tr = np.array(r.truth["fiducials"]["row_px"])[ids]
+            e = np.hypot(col - tc, row - tr)
+            print(f"{dpi:5.0f} dpi {r.pixels.shape[1]} x {r.pixels.shape[0]} px ({fmt}, rendered in {t_render:.1f} s): "
+                  f"{s['n_detected']}/{s['n_expected']} marks, centre error RMS {np.sqrt(np.mean(e ** 2)):.4f} px "
+                  f"(max {e.max():.3f} px) = {np.sqrt(np.mean(e ** 2)) * px * 1000:.2f} um; whole command median "
+                  f"{np.median(walls):.1f} s (of {repeats}: {', '.join(f'{w:.1f}' for w in walls)}), "
+                  f"peak RSS {rss:.2f} GiB; flow runtime_s {s['runtime_s']:.1f}", flush=True)
+
+
+if __name__ == "__main__":
+    main([float(a) for a in sys.argv[1:]] or [1200.0])

@@ -1,0 +1,179 @@
+"""Flatbed or camera images of a marked plate: reading, pixel size, and the raster the detection uses.
+
+An image needs no plane fit and no projection: its pixels are the plate
+raster, x to the right (columns), y down the rows, in mm through the pixel
+size. The pixel size comes from ``--pixel-size-mm`` or from the file's
+resolution (TIFF XResolution/ResolutionUnit, PNG pHYs, JPEG JFIF density, as
+Pillow and tifffile report them); 72 and 96 dpi are what screens and image
+editors write when nobody measured anything, so they are refused like a
+missing resolution. A flatbed scanner's dpi is its real sampling.
+
+Grey or RGB (luminance, Rec. 601 weights), 8 or 16 bit. Marks brighter than
+the plate (laser-marked anodised aluminium) are inverted so the rings are
+always darker. Integer pixels stay integers (one copy of a grey image, none
+more); the ring fits convert only the samples they use.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import MarkcalError
+from .io import existing_file
+from .plane import Plane
+from .project import Raster
+
+IMAGE_EXTS = (".tif", ".tiff", ".png", ".jpg", ".jpeg")
+#: resolutions (per inch) written by screens and editors, not by a measuring device
+DEFAULT_DPI = (72.0, 96.0)
+#: a mark site needs this many pixels across the 0.2 mm ring gap
+MIN_GAP_PX = 3.0
+
+
+@dataclass(frozen=True)
+class PlateImage:
+    """Grey pixels (uint8/uint16 as read, float32 otherwise; rings darker) and the pixel size (mm)."""
+
+    intensity: np.ndarray
+    pixel_mm: float
+    pixel_size_from: str
+    bits: int
+    inverted: bool
+
+
+def _read_pixels(path: str, ext: str) -> tuple:
+    """Pixels as an array and the resolution as (dpi_x, dpi_y) or None."""
+    if ext in (".tif", ".tiff"):
+        import tifffile
+        try:
+            with tifffile.TiffFile(path) as tf:
+                page = tf.pages[0]
+                arr = page.asarray()
+                tags = page.tags
+                dpi = None
+                if "XResolution" in tags and "YResolution" in tags:
+                    unit = tags["ResolutionUnit"].value if "ResolutionUnit" in tags else 2
+                    per = {2: 1.0, 3: 2.54}.get(int(unit))
+                    xr, yr = (tags[k].value for k in ("XResolution", "YResolution"))
+                    if per is not None and xr[1] and yr[1]:
+                        dpi = (xr[0] / xr[1] * per, yr[0] / yr[1] * per)
+        except (OSError, ValueError, tifffile.TiffFileError, IndexError, KeyError) as exc:
+            raise MarkcalError(f"cannot read TIFF ({exc})") from None
+        return arr, dpi
+    from PIL import Image, UnidentifiedImageError
+    Image.MAX_IMAGE_PIXELS = 400_000_000
+    try:
+        with Image.open(path) as im:
+            dpi = im.info.get("dpi")
+            if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr", "1"):
+                im = im.convert("RGB")
+            arr = np.asarray(im)
+    except (OSError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
+        raise MarkcalError(f"cannot read image ({exc})") from None
+    return arr, (tuple(float(v) for v in dpi) if dpi else None)
+
+
+def _grey(arr: np.ndarray) -> tuple:
+    """Grey pixels (8/16-bit integers stay integers: no float copy of a large image) and the bit depth."""
+    import cv2
+    if arr.dtype == np.bool_:
+        arr = arr.astype(np.uint8)
+    if arr.dtype not in (np.uint8, np.uint16) and not np.issubdtype(arr.dtype, np.floating):
+        arr = arr.astype(np.float32)
+    bits = 8 * arr.dtype.itemsize if arr.dtype in (np.uint8, np.uint16) else 32
+    if arr.ndim == 3 and arr.shape[0] in (3, 4) and arr.shape[-1] not in (3, 4):     # planar RGB TIFF
+        arr = np.moveaxis(arr, 0, -1)
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+        if arr.dtype not in (np.uint8, np.uint16, np.float32):
+            arr = arr.astype(np.float32)
+        code = cv2.COLOR_RGB2GRAY if arr.shape[-1] == 3 else cv2.COLOR_RGBA2GRAY   # Rec. 601 weights
+        return cv2.cvtColor(np.ascontiguousarray(arr), code), bits
+    if arr.ndim != 2:
+        raise MarkcalError(f"image has shape {arr.shape}: expected a grey or RGB picture")
+    return (arr if arr.dtype in (np.uint8, np.uint16) else arr.astype(np.float32)), bits
+
+
+def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
+    """Read a plate image (TIFF, PNG, JPEG), grey or RGB, 8/16 bit.
+
+    Parameters
+    ----------
+    pixel_size_mm : float, optional
+        Side of a pixel on the plate (mm); default: from the file's resolution.
+
+    Raises
+    ------
+    MarkcalError
+        Unreadable file, unknown pixel size, unsupported layout.
+    """
+    path, ext = existing_file(path)
+    arr, dpi = _read_pixels(path, ext)
+    if dpi is not None:     # PNG stores pixels per metre: 1200 dpi comes back as 1199.998
+        dpi = tuple(float(np.rint(d)) if abs(d - np.rint(d)) < 0.02 else float(d) for d in dpi)
+    if pixel_size_mm is not None:
+        if not (np.isfinite(pixel_size_mm) and pixel_size_mm > 0):
+            raise MarkcalError(f"--pixel-size-mm must be positive (got {pixel_size_mm})")
+        px, src = float(pixel_size_mm), "--pixel-size-mm"
+    elif dpi is None or not all(np.isfinite(dpi)) or min(dpi) <= 0:
+        raise MarkcalError("the image has no pixel size (no resolution tags): give --pixel-size-mm")
+    elif any(abs(d - s) < 0.5 for d in dpi for s in DEFAULT_DPI):
+        raise MarkcalError(f"the image's resolution is {dpi[0]:g} dpi, a screen/editor default rather "
+                           "than a measured one: give --pixel-size-mm")
+    elif abs(dpi[0] / dpi[1] - 1) > 1e-3:
+        raise MarkcalError(f"the image has non-square pixels ({dpi[0]:g} x {dpi[1]:g} dpi)")
+    else:
+        px, src = 25.4 / dpi[0], f"{dpi[0]:g} dpi resolution tag"
+    grey, bits = _grey(arr)
+    del arr
+    if grey.shape[0] < 16 or grey.shape[1] < 16:
+        raise MarkcalError(f"the image is only {grey.shape[1]} x {grey.shape[0]} pixels")
+    if not np.all(np.isfinite(grey[::7, ::7])):
+        raise MarkcalError("the image holds NaN or infinite pixels")
+    # marks are a few percent of the plate: their side of the median has the longer tail
+    sub = grey[::4, ::4]
+    lo, med, hi = np.percentile(sub, [1, 50, 99])
+    inverted = bool(hi - med > 1.2 * (med - lo))
+    if inverted:
+        if not grey.flags.writeable:
+            grey = grey.copy()
+        np.subtract(grey.max(), grey, out=grey)
+    return PlateImage(intensity=grey, pixel_mm=px, pixel_size_from=src, bits=bits, inverted=inverted)
+
+
+def check_image_size(image: PlateImage, spec) -> None:
+    """Refuse images too coarse to resolve the ring gap or too small to hold a few marks."""
+    radii = sorted(spec.ring_radii_mm)
+    gap = radii[1] - radii[0] if len(radii) > 1 else radii[0]
+    if gap / image.pixel_mm < MIN_GAP_PX:
+        raise MarkcalError(f"pixels of {image.pixel_mm:.3f} mm give {gap / image.pixel_mm:.1f} samples across "
+                           f"the {gap:g} mm ring gap; at least {MIN_GAP_PX:g} are needed")
+    h, w = image.intensity.shape
+    need = 2 * spec.pitch_mm
+    if min(h, w) * image.pixel_mm < need:
+        raise MarkcalError(f"the image covers {w * image.pixel_mm:.1f} x {h * image.pixel_mm:.1f} mm, too small "
+                           f"for a grid of pitch {spec.pitch_mm:.2f} mm (needs {need:.1f} mm a side)")
+
+
+def image_raster(image: PlateImage) -> Raster:
+    """The image as a plate raster (u = column, v = row, mm; every pixel valid; no copy)."""
+    return Raster(intensity=image.intensity, u_mm=None, v_mm=None, valid=None, u0_mm=0.0, v0_mm=0.0,
+                  pixel_mm=image.pixel_mm)
+
+
+def coarse_raster(raster: Raster, target_mm: float) -> Raster:
+    """Area-averaged copy with pixels of about ``target_mm`` (the detection's coarse steps)."""
+    import cv2
+    f = max(1, int(round(target_mm / raster.pixel_mm)))
+    if f == 1:
+        return raster
+    h, w = raster.intensity.shape
+    small = cv2.resize(raster.intensity[:h // f * f, :w // f * f], (w // f, h // f), interpolation=cv2.INTER_AREA)
+    return Raster(intensity=small, u_mm=None, v_mm=None, valid=None, u0_mm=raster.u0_mm, v0_mm=raster.v0_mm,
+                  pixel_mm=raster.pixel_mm * f)
+
+
+def flat_plane() -> Plane:
+    """The image plane as the plate plane: (u, v) -> (u, v, 0)."""
+    return Plane(origin_mm=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), e_u=np.array([1.0, 0.0, 0.0]),
+                 e_v=np.array([0.0, 1.0, 0.0]), rms_mm=0.0, inlier_fraction=1.0, threshold_mm=0.0)
