@@ -2,15 +2,18 @@
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 
+from markcal.pipeline.cli_common import add_run_options
 from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
 
 
 def cmd_scan(args) -> int:
-    from markcal.pipeline.registry import run_and_write
+    from markcal.pipeline.cli_common import run_options
+    from markcal.pipeline.registry import exit_status, run_and_write
 
     say = progress(args.quiet)
     res, paths = run_and_write("scan", args.cloud, args.out, spec_path=args.plate,
@@ -21,19 +24,20 @@ def cmd_scan(args) -> int:
                                         "orientation": args.orientation, "mirror": args.mirror,
                                         "pixel_size_mm": (float("nan") if args.pixel_size_mm is None
                                                           else args.pixel_size_mm)},
-                               progress=say)
+                               progress=say, **run_options(args))
     s = res.summary
     say(f"orientation {s['in_plane_rotation_deg']:.1f} deg{' mirrored' if s['mirrored'] else ''} "
         f"({s['orientation_method']}; galvo-model margin {s['orientation_margin'] or float('inf'):.2f})")
     say(f"{s['n_detected']}/{s['n_expected']} fiducials, deviation RMS {s['rms_mm']:.4f} mm, "
         f"max {s['max_mm']:.4f} mm; model {s['model']}, CV RMSE {s['cv_rmse_mm']:.4f} mm")
-    if s["orientation_method"].startswith("assumed"):
-        say("warning: orientation assumed upright (within 35 deg); the galvo field cannot tell quarter turns "
-            "apart, so a plate laid otherwise needs --rotation-hint-deg or an orientation mark")
+    if s["orientation_method"].startswith("assumed"):            # even with --quiet: it decides the table
+        print(f"markcal: warning: {args.cloud}: orientation assumed upright (within 35 deg, not mirrored); the "
+              "galvo field cannot tell quarter turns apart, so a plate laid otherwise needs --rotation-hint-deg "
+              "or an orientation mark", file=sys.stderr)
     if res.missing_ids:
         say(f"not detected: ids {res.missing_ids}")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
-    return 0
+    return exit_status(res.summary)
 
 
 def cmd_render_scan(args) -> int:
@@ -127,6 +131,7 @@ def register(sub, render_sub) -> None:
                     help="the measurement sees the plate from the back (flatbed face down): no, yes, auto")
     sc.add_argument("--no-report", action="store_true", help="skip report.html")
     sc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(sc)
     sc.set_defaults(func=cmd_scan)
 
     rs = render_sub.add_parser("scan", help="laser-line scan of a galvo-marked plate")

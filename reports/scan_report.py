@@ -531,4 +531,4 @@ def scan_report_html(result: "ScanResult") -> str:
         _fiducial_crops(result),
         _footer(),
     ]
-    return page(title, parts, source=s.get("source", result.source))
+    return page(title, parts, source=s.get("source", result.source), summary=s)
