@@ -164,32 +164,48 @@ class _QuadModel:
         self.xm, self.ym = float(self.X.mean()), float(self.Y.mean())
         self.xs = max(float(np.ptp(self.X)), 1.0)
         self.soft = 0.45 * f
+        self.line_px = max(1.2, 0.6 * f)                    # ridge and edge lines: width (full-res px)
+        d_est = 2 * np.max(np.hypot(*(corners - apex).T))
+        self.halo_px = max(0.08 * d_est, 2.0 * f)             # pile-up halo outside: distance of its crest
         self.noise = _noise(small) + 1e-12
         self.shape = z.shape
 
     def weights(self, p):
+        """Facet weights (4, n), surroundings weight (n,) and the line and halo columns (4, n)."""
         apex, c = p[:2], p[2:].reshape(4, 2)
         X, Y = self.X, self.Y
         # orientation: corners counter-clockwise or clockwise; inside on the same side for all edges
         area = 0.5 * sum(c[k, 0] * c[(k + 1) % 4, 1] - c[(k + 1) % 4, 0] * c[k, 1] for k in range(4))
         sgn = 1.0 if area > 0 else -1.0
-        w = []
-        s = self.soft
+        s, lw = self.soft, self.line_px
+        e = [-sgn * _lines(c[k], c[(k + 1) % 4], X, Y) for k in range(4)]    # inside: positive
+        r = [sgn * _lines(apex, c[k], X, Y) for k in range(4)]                # k+1's side: negative
+        w, edge_line = [], 0.0
         for k in range(4):
-            a, b = c[k], c[(k + 1) % 4]
-            e = -sgn * _lines(a, b, X, Y)            # inside the quadrilateral: positive
-            ra = -sgn * _lines(apex, a, X, Y)        # on b's side of the line apex-a
-            rb = sgn * _lines(apex, b, X, Y)         # on a's side of the line apex-b
-            w.append(expit(e / s) * expit(ra / s) * expit(rb / s))
+            wedge = expit(-r[k] / s) * expit(r[(k + 1) % 4] / s)
+            w.append(expit(e[k] / s) * wedge)
+            edge_line = edge_line + np.exp(-0.5 * (e[k] / lw) ** 2) * wedge
         w = np.array(w)
-        return w, np.clip(1.0 - w.sum(axis=0), 0.0, 1.0)
+        inside = w.sum(axis=0)
+        out = np.clip(1.0 - inside, 0.0, 1.0)
+        ridge = 0.0
+        for k in range(4):
+            along = (X - apex[0]) * (c[k, 0] - apex[0]) + (Y - apex[1]) * (c[k, 1] - apex[1])
+            ridge = ridge + np.exp(-0.5 * (r[k] / lw) ** 2) * (along > 0)
+        ridge = ridge * inside
+        dout = np.min(np.array(e), axis=0)                                      # < 0 outside
+        t = np.maximum(-dout, 0.0) / self.halo_px
+        halo = out * t * np.exp(1.0 - t)                                        # a band beside the edge
+        extra = np.array([edge_line * out, edge_line * inside, ridge, halo])
+        return w, out, extra
 
     def design(self, p):
-        w, out = self.weights(p)
+        w, out, extra = self.weights(p)
         x, y = (self.X - self.xm) / self.xs, (self.Y - self.ym) / self.xs
         cols = []
         for wk in (*w, out):
             cols += [wk, wk * x, wk * y]
+        cols += list(extra)
         return np.column_stack(cols), w, out
 
     @staticmethod
@@ -205,7 +221,7 @@ class _QuadModel:
         """Mean brightness of each facet and of the surroundings (fitted), and the residual RMS."""
         a, w, out = self.design(p)
         coef = self._solve(a, self.z)
-        lv = coef.reshape(5, 3)[:, 0]
+        lv = coef[:15].reshape(5, 3)[:, 0]
         return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2)))
 
 
@@ -258,7 +274,7 @@ def _refine(img, corners, apex, d_px):
     """Coarse-to-fine quadrilateral fit; returns corners (4, 2), apex (2,), model of the last level."""
     p = np.concatenate([apex, corners.ravel()])
     f = 1
-    while d_px / f > 90:
+    while d_px / f > 48:
         f *= 2
     levels = []
     while f >= 1:
@@ -272,7 +288,18 @@ def _refine(img, corners, apex, d_px):
         model = _QuadModel(img, f, p[2:].reshape(4, 2), p[:2], band)
         if len(model.z) < 60:
             continue
-        p = _lm(model.residual, p, 0.05 * f, 25 if i == 0 else 8)
+        if i == 0:
+            # the coarse outline may hold a halo or pile-up: start from it and from shrunk copies
+            best = None
+            for shrink in (1.0, 0.85, 0.7):
+                q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
+                q = _lm(model.residual, q, 0.05 * f, 25)
+                c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                if best is None or c < best[0]:
+                    best = (c, q)
+            p = best[1]
+        else:
+            p = _lm(model.residual, p, 0.05 * f, 8)
     return p[2:].reshape(4, 2), p[:2], model
 
 
@@ -361,12 +388,19 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         corners, apex, model = _refine(work, corners0, apex0, d0)
         if model is None:
             continue
-        corners = _ridge_corners(work, corners, apex, _noise(work))
         lv, rms = model.region_levels(np.concatenate([apex, corners.ravel()]))
+        # a corner between a facet as bright as the surroundings and another is placed by a
+        # barely visible edge: there the end of the ridge between its facets places it
+        edge_con = np.abs(lv[:4] - lv[4])
+        weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.25 * edge_con.max()]
+        if weak:
+            moved = _ridge_corners(work, corners, apex, _noise(work))
+            corners = corners.copy()
+            corners[weak] = moved[weak]
         d1 = np.hypot(*(corners[0] - corners[2]))
         d2 = np.hypot(*(corners[1] - corners[3]))
         contrast = float(np.max(np.abs(lv[:4] - lv[4])))
-        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and contrast > 5 * model.noise):
+        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and contrast > 2 * model.noise):
             continue
         c_um = corners * pixel_um
         dd1, dd2, orient = diagonals(c_um)
