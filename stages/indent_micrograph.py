@@ -28,8 +28,11 @@ from .indent_geometry import Imprint, circle_fit, diagonals
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
 
-#: smallest imprint (mean diagonal, px) measured as a single imprint; smaller dots are arrays
-MIN_DIAGONAL_PX = 40.0
+#: smallest imprint (mean diagonal, px) measured as a single imprint in a micrograph; smaller dots are
+#: arrays (the dot model of :mod:`.indent_om`)
+#: a four-facet fit leaving more than this many noise levels (RMS) is not an imprint
+MAX_FIT_RMS = 3.0
+MIN_DIAGONAL_PX = 60.0
 
 
 def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
@@ -293,11 +296,11 @@ def _refine(img, corners, apex, d_px):
             best = None
             for shrink in (1.0, 0.85, 0.7):
                 q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
-                q = _lm(model.residual, q, 0.05 * f, 25)
+                q = _lm(model.residual, q, 0.05 * f, 6)
                 c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
                 if best is None or c < best[0]:
                     best = (c, q)
-            p = best[1]
+            p = _lm(model.residual, best[1], 0.05 * f, 20)
         else:
             p = _lm(model.residual, p, 0.05 * f, 8)
     return p[2:].reshape(4, 2), p[:2], model
@@ -347,6 +350,14 @@ def _ridge_corners(img, corners, apex, noise, delta_px=2.5):
         if abs(t_c - length) < 0.15 * length:
             out[k] = apex + t_c * e
     return out
+
+
+def _angles_deg(c):
+    out = []
+    for k in range(4):
+        a, b = c[k - 1] - c[k], c[(k + 1) % 4] - c[k]
+        out.append(np.degrees(np.arccos(np.clip(a @ b / (np.hypot(*a) * np.hypot(*b)), -1, 1))))
+    return np.array(out)
 
 
 def find_imprints(img: np.ndarray, min_diagonal_px: float = MIN_DIAGONAL_PX) -> list:
@@ -400,7 +411,8 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         d1 = np.hypot(*(corners[0] - corners[2]))
         d2 = np.hypot(*(corners[1] - corners[3]))
         contrast = float(np.max(np.abs(lv[:4] - lv[4])))
-        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and contrast > 2 * model.noise):
+        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and contrast > 2 * model.noise
+                and rms < MAX_FIT_RMS * model.noise and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0)):
             continue
         c_um = corners * pixel_um
         dd1, dd2, orient = diagonals(c_um)

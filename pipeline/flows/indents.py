@@ -19,6 +19,7 @@ from markcal.stages import indent as ind
 from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
+from markcal.stages.indent_micrograph import measure_micrograph
 from markcal.stages.indent_single import INDENTERS, hardness_hv, level_single, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
@@ -138,6 +139,17 @@ def _check_fits(img: Image, spec: ArraySpec):
                            f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
 
 
+def _micrograph_single(img: Image, say, info) -> list:
+    """Single imprints of a light or electron micrograph (empty when there are none this large)."""
+    name = os.path.basename(img.source)
+    say(f"{name}: looking for single imprints in {img.shape[0]} x {img.shape[1]} micrograph")
+    imps, bar = measure_micrograph(img.data, img.pixel_um)
+    info.update(bar_rows=bar, method="four-facet quadrilateral fit (single imprints)")
+    if bar:
+        say(f"{name}: information bar of {bar} rows at the bottom left out")
+    return imps
+
+
 def _measure(img: Image, spec, opt, say, t0):
     name = os.path.basename(img.source)
     if spec is not None:
@@ -158,6 +170,9 @@ def _measure(img: Image, spec, opt, say, t0):
         floor = max(5.0, 8 * lv.noise_nm)
         image = lv.z_nm
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
+    elif spec is None and (single := _micrograph_single(img, say, info)):
+        # one or more single imprints (at least MIN_DIAGONAL_PX across): corners from the four-facet fit
+        imps, floor, image = single, None, img.data
     else:
         say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
         bg = ind.om_background(img.data, px)
