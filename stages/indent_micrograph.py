@@ -33,6 +33,8 @@ __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL
 #: a four-facet fit leaving more than this many noise levels (RMS) is not an imprint
 MAX_FIT_RMS = 3.0
 MIN_DIAGONAL_PX = 60.0
+#: a corner on a faint edge moves to the end of its ridge when they are farther apart than this (px)
+RIDGE_OVERRIDE_PX = 3.0
 
 
 def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
@@ -183,11 +185,12 @@ class _QuadModel:
         s, lw = self.soft, self.line_px
         e = [-sgn * _lines(c[k], c[(k + 1) % 4], X, Y) for k in range(4)]    # inside: positive
         r = [sgn * _lines(apex, c[k], X, Y) for k in range(4)]                # k+1's side: negative
-        w, edge_line = [], 0.0
+        w, edge_line, glow = [], 0.0, 0.0
         for k in range(4):
             wedge = expit(-r[k] / s) * expit(r[(k + 1) % 4] / s)
             w.append(expit(e[k] / s) * wedge)
             edge_line = edge_line + np.exp(-0.5 * (e[k] / lw) ** 2) * wedge
+            glow = glow + np.exp(-np.abs(e[k]) / (3 * lw)) * wedge
         w = np.array(w)
         inside = w.sum(axis=0)
         out = np.clip(1.0 - inside, 0.0, 1.0)
@@ -199,7 +202,7 @@ class _QuadModel:
         dout = np.min(np.array(e), axis=0)                                      # < 0 outside
         t = np.maximum(-dout, 0.0) / self.halo_px
         halo = out * t * np.exp(1.0 - t)                                        # a band beside the edge
-        extra = np.array([edge_line * out, edge_line * inside, ridge, halo])
+        extra = np.array([edge_line * out, edge_line * inside, glow * inside, ridge, halo])
         return w, out, extra
 
     def design(self, p):
@@ -405,9 +408,12 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         edge_con = np.abs(lv[:4] - lv[4])
         weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.25 * edge_con.max()]
         if weak:
+            # the ridge end overrides the fit only where they disagree by more than its own
+            # uncertainty (about 2 px on renders)
             moved = _ridge_corners(work, corners, apex, _noise(work))
+            far = [k for k in weak if np.hypot(*(moved[k] - corners[k])) > RIDGE_OVERRIDE_PX]
             corners = corners.copy()
-            corners[weak] = moved[weak]
+            corners[far] = moved[far]
         d1 = np.hypot(*(corners[0] - corners[2]))
         d2 = np.hypot(*(corners[1] - corners[3]))
         contrast = float(np.max(np.abs(lv[:4] - lv[4])))
