@@ -151,7 +151,7 @@ def _floor(zr, zs, pit):
     masked = np.where(pit, zs, np.inf)
     r0, c0 = np.unravel_index(int(np.argmin(masked)), zs.shape)
     ny, nx = zr.shape
-    h = 2
+    h = 1
     ra, rb, ca, cb = max(0, r0 - h), min(ny, r0 + h + 1), max(0, c0 - h), min(nx, c0 + h + 1)
     pr, pc = np.mgrid[ra:rb, ca:cb]
     dr, dc, v = (pr - r0).ravel().astype(float), (pc - c0).ravel().astype(float), zr[ra:rb, ca:cb].ravel()
@@ -300,6 +300,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
     zs = ndimage.gaussian_filter(zr, 1.0)
     fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit)
+    fr, fc = fr + r0, fc + c0                                          # window -> map rows, cols
     depth = -fz
     if not depth > thr:
         return None
