@@ -171,7 +171,7 @@ class _QuadModel:
         self.soft = 0.45 * f
         self.line_px = max(1.2, 0.6 * f)                    # ridge and edge lines: width (full-res px)
         d_est = 2 * np.max(np.hypot(*(corners - apex).T))
-        self.halo_px = max(0.08 * d_est, 2.0 * f)             # pile-up halo outside: distance of its crest
+        self.halo_px = max(0.08 * d_est, 2.0 * f)            # pile-up halo outside: distance of its crest
         self.noise = _noise(small) + 1e-12
         self.shape = z.shape
 
@@ -202,7 +202,7 @@ class _QuadModel:
         dout = np.min(np.array(e), axis=0)                                      # < 0 outside
         t = np.maximum(-dout, 0.0) / self.halo_px
         halo = out * t * np.exp(1.0 - t)                                        # a band beside the edge
-        extra = np.array([edge_line * out, edge_line * inside, glow * inside, ridge, halo])
+        extra = np.array([edge_line * out, edge_line * inside, glow, ridge, halo])
         return w, out, extra
 
     def design(self, p):
