@@ -403,10 +403,11 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         if model is None:
             continue
         lv, rms = model.region_levels(np.concatenate([apex, corners.ravel()]))
-        # a corner between a facet as bright as the surroundings and another is placed by a
-        # barely visible edge: there the end of the ridge between its facets places it
+        # a corner whose fainter edge has less than half the contrast of the ridge between its
+        # two facets is placed better by the end of that ridge
         edge_con = np.abs(lv[:4] - lv[4])
-        weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.25 * edge_con.max()]
+        ridge_con = np.abs(lv[[3, 0, 1, 2]] - lv[:4])                   # corner k: facets k-1 and k
+        weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.5 * ridge_con[k]]
         if weak:
             # the ridge end overrides the fit only where they disagree by more than its own
             # uncertainty (about 2 px on renders)
