@@ -1,6 +1,7 @@
 """Indents flow: speed (512 x 512 AFM map, 25 imprints, goal <= 1 s) and accuracy on unseen renders.
 
-Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4]
+Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4] [--micro-seeds 10]
+       [--rounded-seeds 8] [--single-seeds 10]
 
 Speed: read the float32 TIFF -> level -> detect -> measure -> index and register,
 in memory (``measure_file``), median of ``--runs``. Accuracy: seeds 1000+ (never
@@ -54,6 +55,8 @@ def main(argv=None):
     ap.add_argument("--om-nominal", type=float, default=None, help="OM: one nominal size (µm) for every seed")
     ap.add_argument("--om-first-seed", type=int, default=1000)
     ap.add_argument("--single-seeds", type=int, default=10, help="single real-like imprints (issue 20 goals)")
+    ap.add_argument("--micro-seeds", type=int, default=10, help="single imprints in OM and SEM micrograph renders")
+    ap.add_argument("--rounded-seeds", type=int, default=8, help="arrays with Gaussian tip rounding (depth)")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
     print("machine: 2 cores shared with other jobs; timings are noisy", file=sys.stderr)
@@ -71,12 +74,104 @@ def main(argv=None):
               f"(min {min(times):.3f}, max {max(times):.3f}), CPU median {np.median(cpu):.3f} s, {a.runs} runs; "
               "goal <= 1 s", flush=True)
 
+    if a.micro_seeds:
+        _micrograph_sweep(a)
+        _real_sem(a)
+    if a.rounded_seeds:
+        _rounded_sweep(a)
     if a.single_seeds:
         _single_sweep(a, tmp)
     if a.afm_seeds:
         _afm_sweep(a, tmp)
     if a.om_seeds:
         _om_sweep(a, tmp)
+
+
+def _micrograph_sweep(a):
+    """Single imprints in micrograph renders (fixtures/indent_micrograph, seeds 3000+), OM and SEM."""
+    from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
+    from markcal.stages.indent_micrograph import measure_micrograph
+    print(f"\nmicrographs, seeds 3000..{2999 + a.micro_seeds}, 360 x 480 at 0.1 µm (SEM with a 40-row bar); "
+          "goals: d within 1 % or 1 px, corners 1.5 px")
+    print("style seed  d_px    d_err_%  d_err_px  corner_max_px  n  wall_s")
+    for style in ("om", "sem"):
+        v = []
+        for i in range(a.micro_seeds):
+            seed = 3000 + i
+            r = render_micrograph(seed, MicrographOptions(style=style, bar_rows=40 if style == "sem" else 0))
+            t = r.truth["imprints"][0]
+            px = r.pixel_um
+            t0 = time.perf_counter()
+            imps, _bar = measure_micrograph(r.data, px)
+            wall = time.perf_counter() - t0
+            if not imps:
+                print(f"{style:5s} {seed}  none found")
+                v.append((np.nan, np.nan, np.nan, wall))
+                continue
+            m = min(imps, key=lambda q: np.hypot(q.x_um - t["x_um"], q.y_um - t["y_um"]))
+            tc = np.array(t["corners_um"]) / px
+            cmax = max(np.min(np.hypot(*(m.corners_um / px - c).T)) for c in tc)
+            row = (100 * (m.d_um / t["d_um"] - 1), (m.d_um - t["d_um"]) / px, cmax, wall)
+            v.append(row)
+            print(f"{style:5s} {seed} {t['d_um'] / px:5.0f}  {row[0]:+7.2f}  {row[1]:+8.2f}  {cmax:13.2f}  "
+                  f"{len(imps)}  {wall:6.2f}", flush=True)
+        v = np.array(v)
+        ok = np.mean((np.abs(v[:, 0]) <= 1.0) | (np.abs(v[:, 1]) <= 1.0))
+        print(f"{style} all: d error mean {np.nanmean(v[:, 1]):+.2f} px, max |{np.nanmax(np.abs(v[:, 1])):.2f}| px "
+              f"({np.nanmax(np.abs(v[:, 0])):.2f} %), within goal {100 * ok:.0f} %; corners max "
+              f"{np.nanmax(v[:, 2]):.2f} px, within 1.5 px {100 * np.mean(v[:, 2] <= 1.5):.0f} %; "
+              f"wall median {np.median(v[:, 3]):.2f} s")
+
+
+def _real_sem(a):
+    """The real FEI SEM image (1536 x 1103, one ~19 µm imprint): time of measure_file, median of runs."""
+    from pathlib import Path
+    env = os.environ.get("MARKCAL_REALDATA")
+    root = Path(env) if env else Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
+    if not root.is_dir():
+        root = Path("/work/shared/realdata")
+    path = root / "sem_vickers" / "Indent_20230912_7kV_spot4.5_FOV100um_multiBSE_A_05.tif"
+    if not path.is_file():
+        print("real SEM image not present: skipped")
+        return
+    times = []
+    for _ in range(max(1, a.runs)):
+        t0 = time.perf_counter()
+        f = measure_file(str(path), None, IndentsOptions())
+        times.append(time.perf_counter() - t0)
+    t = f.table
+    print(f"real SEM image: {len(t['id'])} imprint(s), d1 {t['diag1_um'][0]:.3f} µm, d2 {t['diag2_um'][0]:.3f} µm, "
+          f"d {t['d_um'][0]:.3f} µm, bar {f.info.get('bar_rows')} rows; wall median {np.median(times):.2f} s "
+          f"(min {min(times):.2f}), goal <= 2 s")
+
+
+def _rounded_sweep(a):
+    """Arrays with Gaussian tip rounding (fixtures/indent_rounded, seeds 4000+): depth against the true floor."""
+    from markcal.fixtures.indent_rounded import RoundedOptions, render_rounded_afm
+    from markcal.stages.image_io import Image
+    from markcal.stages.indent_array import ArraySpec
+    from markcal.pipeline.flows.indents import _measure
+    print(f"\nGaussian-rounded arrays, seeds 4000..{3999 + a.rounded_seeds}, 3 x 3 of 2 µm, 256 x 256 over 16 µm; "
+          "goal: depth bias <= 1 nm, RMS <= 2 nm against the rounded surface's floor")
+    print("seed rounding_um  depth_bias_nm  depth_rms_nm  apex_bias_nm  apex_rms_nm")
+    allv = []
+    for i in range(a.rounded_seeds):
+        seed = 4000 + i
+        r = render_rounded_afm(seed, RoundedOptions())
+        img = Image(data=r.data.astype(float), pixel_um=r.pixel_um, kind="afm", source=f"rounded{seed}")
+        res = _measure(img, ArraySpec(3, 3, 5.0, 2.0), IndentsOptions(), lambda m: None, time.perf_counter())
+        e = []
+        for t in r.truth["imprints"]:
+            k = int(np.argmin(np.hypot(res.table["x_um"] - t["x_um"], res.table["y_um"] - t["y_um"])))
+            e.append((res.table["depth_nm"][k] - t["floor_depth_nm"], res.table["apex_depth_nm"][k] - t["floor_depth_nm"]))
+        e = np.array(e)
+        allv.append(e)
+        print(f"{seed} {r.truth['rounding_um']:11.3f} {np.mean(e[:, 0]):+14.2f} {np.sqrt(np.mean(e[:, 0] ** 2)):13.2f} "
+              f"{np.nanmean(e[:, 1]):+13.2f} {np.sqrt(np.nanmean(e[:, 1] ** 2)):12.2f}", flush=True)
+    e = np.vstack(allv)
+    print(f"all {len(e)}: depth_nm bias {np.mean(e[:, 0]):+.2f} nm, RMS {np.sqrt(np.mean(e[:, 0] ** 2)):.2f} nm; "
+          f"apex_depth_nm (facet model) bias {np.nanmean(e[:, 1]):+.2f} nm, RMS "
+          f"{np.sqrt(np.nanmean(e[:, 1] ** 2)):.2f} nm")
 
 
 def _single_sweep(a, tmp):

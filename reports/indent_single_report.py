@@ -49,7 +49,11 @@ def _map(f, m):
                    colors="lime", linewidths=0.8)
     else:
         ax.imshow(f.image, cmap="gray", extent=ext)
-    if m.contour_um is not None:
+        bar = f.info.get("bar_rows") or 0
+        if bar:
+            yb = (ny - bar - 0.5) * px
+            ax.axhline(yb, color="orange", lw=0.8, ls="--", label=f"information bar ({bar} rows) left out")
+    if m.contour_um is not None and f.kind == "afm":
         ax.plot(m.contour_um[:, 0], m.contour_um[:, 1], "-", color="cyan", lw=0.9, label="contact boundary")
     c = m.corners_um
     for a, b in ((0, 2), (1, 3)):
@@ -58,10 +62,47 @@ def _map(f, m):
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
     ax.legend(loc="lower right", fontsize=7)
-    cap = (f"<code>{esc(os.path.basename(f.source))}</code>: corners (red), diagonals (white dashed), "
-           "contact boundary at the original-surface level (cyan)"
-           + (", pile-up above 5 noise levels (green)." if f.kind == "afm" else "."))
+    what = ("contact boundary at the original-surface level (cyan), pile-up above 5 noise levels (green)."
+            if f.kind == "afm" else "information bar left out (orange dashed) where there is one.")
+    cap = f"<code>{esc(os.path.basename(f.source))}</code>: corners (red), diagonals (white dashed), {what}"
     return img(png_b64(fig), f.source, cap)
+
+
+def _micrograph_zoom(f, m):
+    """The imprint enlarged, with its four corners, and each corner at high magnification."""
+    px = f.pixel_um
+    ny, nx = f.image.shape
+    ext = (-0.5 * px, (nx - 0.5) * px, (ny - 0.5) * px, -0.5 * px)
+    c = m.corners_um
+    closed = np.vstack([c, c[:1]])
+    lo, hi = np.nanpercentile(f.image, [0.5, 99.5])
+    fig = new_figure(11.0, 5.6)
+    gs = fig.add_gridspec(2, 4)
+    ax = fig.add_subplot(gs[:, :2])
+    ax.imshow(f.image, cmap="gray", extent=ext, vmin=lo, vmax=hi)
+    ax.plot(closed[:, 0], closed[:, 1], "-", color="cyan", lw=0.7)
+    for a, b in ((0, 2), (1, 3)):
+        ax.plot(c[[a, b], 0], c[[a, b], 1], "--", color="yellow", lw=0.6)
+    ax.plot(c[:, 0], c[:, 1], "+", ms=12, color="red", mew=1.2)
+    half = 0.7 * max(m.diag1_um, m.diag2_um)
+    ax.set_xlim(m.x_um - half, m.x_um + half)
+    ax.set_ylim(m.y_um + half, m.y_um - half)
+    ax.set_xlabel("x (µm)")
+    ax.set_ylabel("y (µm)")
+    win = max(0.08 * m.d_um, 12 * px)
+    for k in range(4):
+        axk = fig.add_subplot(gs[k // 2, 2 + k % 2])
+        axk.imshow(f.image, cmap="gray", extent=ext, vmin=lo, vmax=hi, interpolation="nearest")
+        axk.plot(closed[:, 0], closed[:, 1], "-", color="cyan", lw=0.6)
+        axk.plot(c[k, 0], c[k, 1], "+", ms=16, color="red", mew=1.2)
+        axk.set_xlim(c[k, 0] - win, c[k, 0] + win)
+        axk.set_ylim(c[k, 1] + win, c[k, 1] - win)
+        axk.set_title(f"corner {k + 1} ({c[k, 0]:.2f}, {c[k, 1]:.2f}) µm", fontsize=8)
+        axk.tick_params(labelsize=6)
+    cap = (f"<code>{esc(os.path.basename(f.source))}</code>: the imprint enlarged with its corners (red +), "
+           "outline (cyan) and diagonals (yellow); right: each corner magnified (±"
+           f"{win:.2f} µm) so a person can check that it sits where the facet edges end.")
+    return img(png_b64(fig), f.source + " corners", cap)
 
 
 def _profiles(f, m):
@@ -83,7 +124,7 @@ def _profiles(f, m):
             ax.axhline(-m.depth_nm, color="red", lw=0.8, ls=":", label=f"floor −{m.depth_nm:.1f} nm")
         ax.set_ylabel("height (nm)")
     else:
-        ax.set_ylabel("grey value / illumination")
+        ax.set_ylabel("grey value" if f.info.get("bar_rows") is not None else "grey value / illumination")
     ax.set_xlabel("distance from the middle of the diagonal (µm)")
     ax.legend(fontsize=7)
     return img(png_b64(fig), f.source + " profiles", "Profiles along both diagonals, corner to corner and 15 % beyond.")
@@ -97,5 +138,7 @@ def single_section(files) -> str:
         parts.append(f"<h2>Imprint {int(f.table['id'][k])} of <code>{esc(os.path.basename(f.source))}</code></h2>")
         parts.append(table(["quantity", "value"], _numbers(f, k)))
         parts.append(_map(f, m))
+        if f.kind != "afm":
+            parts.append(_micrograph_zoom(f, m))
         parts.append(_profiles(f, m))
     return "".join(parts)

@@ -12,11 +12,24 @@ import numpy as np
 
 from .indent_geometry import Imprint
 
-__all__ = ["LARGE_IMPRINT_PX", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags"]
+__all__ = ["LARGE_IMPRINT_PX", "rounding_px", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags"]
 
 #: from this mean diagonal (px) on, corners come from the contact boundary (extreme points on
 #: bowed edges); below it the facet model's corners are the better estimate
 LARGE_IMPRINT_PX = 40.0
+
+
+def rounding_px(facet: Imprint, pixel_um: float) -> float:
+    """Width (px) of the facet model's rounded apex: blend (nm) / facet slope.
+
+    Under a pixel, the pixels do not sample the floor (the lowest pixel lies up to a slope
+    times half a pixel above it) and the model's floor is the better depth; from a pixel on,
+    the measured floor is.
+    """
+    slope = facet.depth_nm / (500.0 * facet.diameter_um)
+    if not (np.isfinite(facet.blend_nm) and slope > 0):
+        return 0.0
+    return float(facet.blend_nm / slope / 1000.0 / pixel_um)
 
 
 def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
@@ -24,7 +37,9 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
 
     Large imprints (mean diagonal >= ``LARGE_IMPRINT_PX``) or ones the facet model cannot
     fit take centre, corners, diagonals and depth (the measured floor) from ``single``; small
-    ones keep the facet model's. Area, pile-up volume, edge bow and the border flag always
+    ones keep the facet model's centre, corners and diagonals, and their ``depth_nm`` is the
+    measured floor where the apex rounding is at least a pixel wide (:func:`rounding_px`; else
+    the facet model's floor, which the pixels do not sample). Area, pile-up volume, edge bow and the border flag always
     come from ``single``; ``apex_depth_nm`` is the facet model's depth.
 
     Parameters
@@ -42,6 +57,10 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
                  cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
                  apex_depth_nm=facet.depth_nm if facet is not None else nan)
     if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
+        if np.isfinite(single.depth_nm) and rounding_px(facet, pixel_um) >= 1.0:
+            # the rounded floor is resolved by the pixels: depth to the measured floor (the lowest
+            # point of the denoised surface), not the facet model's extrapolated blend
+            extra.update(depth_nm=single.depth_nm, hd_ratio=float(single.depth_nm / (1000 * facet.diameter_um)))
         return dataclasses.replace(facet, **extra)
     hd = single.depth_nm / (1000 * single.diameter_um)
     return Imprint(x_um=single.x_um, y_um=single.y_um, diameter_um=single.diameter_um, diag1_um=single.diag1_um,

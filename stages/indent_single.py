@@ -17,6 +17,7 @@ Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,7 +26,7 @@ from scipy import ndimage
 from .indent_geometry import circle_fit, diagonals, robust_plane
 from .level import Levelled, _remove_scars, noise_nm, poly_surface
 
-__all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "level_single", "measure_single",
+__all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "level_single", "measure_single", "facet_apex_nm",
            "SINGLE_FIELDS"]
 
 
@@ -127,7 +128,10 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
         z -= surf
         # line offsets from the far field of each row
         cnt = keep.sum(axis=1)
-        off = np.array([np.median(z[r][keep[r]]) if cnt[r] >= 3 else np.nan for r in range(ny)])
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)                # rows without far field
+            off = np.nanmedian(np.where(keep, z, np.nan), axis=1) if cnt.max() >= 3 else np.full(ny, np.nan)
+        off[cnt < 3] = np.nan
         good = np.isfinite(off)
         if good.sum() >= 2:
             off = np.interp(np.arange(ny), np.flatnonzero(good), off[good])
@@ -151,7 +155,7 @@ def _floor(zr, zs, pit):
     masked = np.where(pit, zs, np.inf)
     r0, c0 = np.unravel_index(int(np.argmin(masked)), zs.shape)
     ny, nx = zr.shape
-    h = 2
+    h = 1
     ra, rb, ca, cb = max(0, r0 - h), min(ny, r0 + h + 1), max(0, c0 - h), min(nx, c0 + h + 1)
     pr, pc = np.mgrid[ra:rb, ca:cb]
     dr, dc, v = (pr - r0).ravel().astype(float), (pc - c0).ravel().astype(float), zr[ra:rb, ca:cb].ravel()
@@ -300,6 +304,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
     zs = ndimage.gaussian_filter(zr, 1.0)
     fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit)
+    fr, fc = fr + r0, fc + c0                                          # window -> map rows, cols
     depth = -fz
     if not depth > thr:
         return None
@@ -358,9 +363,10 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         if sel.any():
             bows[j] = float(np.median(off[sel])) / (d_um / 2)
     # pile-up outside the contact boundary
-    from matplotlib.path import Path
-    inside = Path(cont[:, ::-1]).contains_points(np.column_stack([(cc - c0).ravel(), (rr - r0).ravel()]))
-    inside = inside.reshape(zr.shape)
+    from skimage.draw import polygon
+    inside = np.zeros(zr.shape, bool)
+    pr, pc = polygon(cont[:, 0], cont[:, 1], zr.shape)                # pixel centres inside the boundary
+    inside[pr, pc] = True
     outer = fin & ~inside & (zs > max(3 * noise, 1.0))
     pileup = float(zs[fin & ~inside].max()) if (fin & ~inside).any() else float("nan")
     vol = float(zr[outer].sum() * pixel_um * pixel_um * 1e-3)
@@ -370,6 +376,41 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
                          floor_um=(float(fc * pixel_um), float(fr * pixel_um)), pileup_nm=pileup,
                          pileup_volume_um3=vol, edge_bow=bows, cut_by_border=cut, contour_um=cont_um,
                          n_pixels=int(pit.sum()))
+
+
+def facet_apex_nm(z_nm: np.ndarray, pixel_um: float, imprint: SingleImprint, inset: float = 0.2) -> float:
+    """Apex depth (nm, positive down) of four planes fitted in closed form, one per facet.
+
+    Each facet's pixels (the triangle floor - corner k - corner k+1, shrunk by ``inset`` of
+    its size away from its edges, the ridges and the rounded floor) get a least-squares plane;
+    the apex is the point nearest to all four planes (linear least squares in x, y, z). The
+    cheap stand-in for the facet model on large imprints.
+    """
+    c = np.asarray(imprint.corners_um) / pixel_um                       # (x, y) px
+    f = np.array(imprint.floor_um) / pixel_um
+    ny, nx = z_nm.shape
+    planes = []
+    for k in range(len(c)):
+        tri = np.array([f, c[k], c[(k + 1) % len(c)]])
+        lo = np.maximum(np.floor(tri.min(axis=0)).astype(int), 0)
+        hi = np.minimum(np.ceil(tri.max(axis=0)).astype(int) + 1, [nx, ny])
+        yy, xx = np.mgrid[lo[1]:hi[1], lo[0]:hi[0]]
+        m = np.array([[tri[1, 0] - tri[0, 0], tri[2, 0] - tri[0, 0]], [tri[1, 1] - tri[0, 1], tri[2, 1] - tri[0, 1]]])
+        inv = np.linalg.inv(m)
+        u = inv[0, 0] * (xx - tri[0, 0]) + inv[0, 1] * (yy - tri[0, 1])
+        v = inv[1, 0] * (xx - tri[0, 0]) + inv[1, 1] * (yy - tri[0, 1])
+        w = 1 - u - v
+        sel = (u > inset) & (v > inset) & (w > inset)
+        zz = z_nm[lo[1]:hi[1], lo[0]:hi[0]]
+        sel &= np.isfinite(zz)
+        if sel.sum() < 10:
+            return float("nan")
+        a = np.column_stack([xx[sel], yy[sel], np.ones(int(sel.sum()))]).astype(float)
+        planes.append(np.linalg.lstsq(a, zz[sel], rcond=None)[0])
+    p = np.array(planes)                                               # z = p0 x + p1 y + p2
+    a = np.column_stack([p[:, 0], p[:, 1], -np.ones(len(p))])
+    x, y, z = np.linalg.lstsq(a, -p[:, 2], rcond=None)[0]
+    return float(-z)
 
 
 def _shoelace(p):

@@ -7,6 +7,7 @@ errors; per-size statistics pooled over all files of a batch.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -19,7 +20,8 @@ from markcal.stages import indent as ind
 from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
-from markcal.stages.indent_single import INDENTERS, hardness_hv, level_single, measure_single
+from markcal.stages.indent_micrograph import measure_micrograph
+from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, level_single, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
@@ -138,6 +140,31 @@ def _check_fits(img: Image, spec: ArraySpec):
                            f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
 
 
+def _afm_imprint(lv, px, r, c, rad):
+    """One AFM imprint: the model-free measurement, and the facet model where it is used.
+
+    A large imprint (``LARGE_IMPRINT_PX``) takes everything from the model-free measurement;
+    its ``apex_depth_nm`` comes from closed-form plane fits per facet instead of the (slow)
+    facet model.
+    """
+    single = measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad)
+    if single is not None and single.d_um / px >= sel.LARGE_IMPRINT_PX:
+        m = sel.merge_afm(None, single, px)
+        return dataclasses.replace(m, apex_depth_nm=facet_apex_nm(lv.z_nm, px, single))
+    return sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars), single, px)
+
+
+def _micrograph_single(img: Image, say, info) -> list:
+    """Single imprints of a light or electron micrograph (empty when there are none this large)."""
+    name = os.path.basename(img.source)
+    say(f"{name}: looking for single imprints in {img.shape[0]} x {img.shape[1]} micrograph")
+    imps, bar = measure_micrograph(img.data, img.pixel_um)
+    info.update(bar_rows=bar, method="four-facet quadrilateral fit (single imprints)")
+    if bar:
+        say(f"{name}: information bar of {bar} rows at the bottom left out")
+    return imps
+
+
 def _measure(img: Image, spec, opt, say, t0):
     name = os.path.basename(img.source)
     if spec is not None:
@@ -153,11 +180,13 @@ def _measure(img: Image, spec, opt, say, t0):
             lv = level_single(img.data, px)
         say(f"{name}: detecting and fitting imprints")
         cands = ind.detect_pits(lv.z_nm, lv.noise_nm, px)
-        imps = [sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars),
-                              measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad), px) for r, c, rad in cands]
+        imps = [_afm_imprint(lv, px, r, c, rad) for r, c, rad in cands]
         floor = max(5.0, 8 * lv.noise_nm)
         image = lv.z_nm
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
+    elif spec is None and (single := _micrograph_single(img, say, info)):
+        # one or more single imprints (at least MIN_DIAGONAL_PX across): corners from the four-facet fit
+        imps, floor, image = single, None, img.data
     else:
         say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
         bg = ind.om_background(img.data, px)

@@ -1,0 +1,437 @@
+"""Single Vickers imprints in light (OM) and electron (SEM) micrographs: corners and diagonals.
+
+A Vickers imprint in a micrograph is four facets meeting at the apex, each of its own
+brightness (shading, detector side), inside a square-ish outline; the corners are where the
+facet edges end. The measurement:
+
+- :func:`info_bar_rows`: an instrument information bar along the bottom (rows whose most
+  common value covers much of the row: the bar's flat background with text) is left out;
+- coarse detection on a block-averaged copy: deviation from a robust quadratic background,
+  closed and filled, one component per imprint; orientation from the outline's four-fold
+  moment, corners as the outline's extreme points along the diagonals;
+- refinement, coarse to fine: a quadrilateral (four corners) with an apex, its four
+  triangular facets and the surroundings each given a linear brightness (fitted in closed
+  form for every trial geometry: variable projection), edges softened by a fraction of a
+  pixel; the ten coordinates by robust least squares. On the finer levels only a band around
+  the edges and ridges is used.
+
+Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down).
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy.optimize import least_squares
+from scipy.special import expit
+
+from .indent_geometry import Imprint, circle_fit, diagonals
+
+__all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
+
+#: smallest imprint (mean diagonal, px) measured as a single imprint in a micrograph; smaller dots are
+#: arrays (the dot model of :mod:`.indent_om`)
+#: a four-facet fit leaving more than this many noise levels (RMS) is not an imprint
+MAX_FIT_RMS = 3.0
+MIN_DIAGONAL_PX = 60.0
+#: a corner on a faint edge moves to the end of its ridge when they are farther apart than this (px)
+RIDGE_OVERRIDE_PX = 3.0
+
+
+def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
+    """Rows of an instrument information bar along the bottom of a micrograph (0: none).
+
+    A bar row's most common grey value covers at least 40 % of the row (the bar's flat
+    background between text) or the row is constant; the bar is the run of such rows from
+    the bottom, at least ``min_rows`` long and at most a third of the image. Two rows of
+    margin are added (the bar's edge).
+    """
+    ny, nx = img.shape
+    n = 0
+    for r in range(ny - 1, ny - ny // 3, -1):
+        row = img[r]
+        _v, cnt = np.unique(row, return_counts=True)
+        if cnt.max() >= 0.4 * nx or np.ptp(row) == 0:
+            n += 1
+        else:
+            break
+    return n + 2 if n >= min_rows else 0
+
+
+def _block(img, f):
+    if f == 1:
+        return img
+    ny, nx = (img.shape[0] // f) * f, (img.shape[1] // f) * f
+    return img[:ny, :nx].reshape(ny // f, f, nx // f, f).mean(axis=(1, 3))
+
+
+def _noise(img):
+    d = np.diff(img, axis=1)
+    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2)) + 1e-12
+
+
+def _robust_quadratic(z, step=2, n_iter=4):
+    ny, nx = z.shape
+    rr, cc = np.mgrid[0:ny:step, 0:nx:step]
+    x, y = cc.ravel() / nx - 0.5, rr.ravel() / ny - 0.5
+    v = z[::step, ::step].ravel()
+    a = np.column_stack([np.ones_like(x), x, y, x * x, x * y, y * y])
+    keep = np.ones(len(v), bool)
+    coef = np.zeros(6)
+    for _ in range(n_iter):
+        coef = np.linalg.lstsq(a[keep], v[keep], rcond=None)[0]
+        r = v - a @ coef
+        s = 1.4826 * np.median(np.abs(r[keep])) + 1e-12
+        keep = np.abs(r) < 2.5 * s
+    R, C = np.mgrid[0:ny, 0:nx]
+    X, Y = C / nx - 0.5, R / ny - 0.5
+    return coef[0] + coef[1] * X + coef[2] * Y + coef[3] * X * X + coef[4] * X * Y + coef[5] * Y * Y
+
+
+def _coarse(img, min_d_px):
+    """Candidate imprints: list of (corners (4, 2) [x, y] px, apex (2,) px) on the full-res grid."""
+    f = max(1, int(np.ceil(max(img.shape) / 320)))
+    small = _block(img, f)
+    s = ndimage.gaussian_filter(small, 1.0)
+    dev = s - _robust_quadratic(s)
+    sd = 1.4826 * np.median(np.abs(dev - np.median(dev))) + 1e-12
+    noise_s = _noise(small) / 2.0
+    thr = max(3.0 * sd, 5 * noise_s)
+    grad = ndimage.gaussian_gradient_magnitude(small, 1.0)
+    gthr = np.median(grad) + 6 * 1.4826 * np.median(np.abs(grad - np.median(grad)))
+    mask = (np.abs(dev) > thr) | (grad > gthr)
+    rad = max(1, int(round(0.04 * min_d_px / f)) + 1)
+    st = ndimage.generate_binary_structure(2, 1)
+    mask = ndimage.binary_closing(mask, st, iterations=rad + 1)
+    mask = ndimage.binary_fill_holes(mask)
+    mask = ndimage.binary_opening(mask, st, iterations=rad)
+    lab, n = ndimage.label(mask)
+    out = []
+    if n == 0:
+        return out
+    areas = ndimage.sum(mask, lab, np.arange(1, n + 1))
+    min_area = 0.5 * (min_d_px / f) ** 2 * 0.5
+    for k in np.flatnonzero(areas >= min_area) + 1:
+        comp = lab == k
+        edge = comp & ~ndimage.binary_erosion(comp, st)
+        er, ec = np.nonzero(edge)
+        cr, cc_ = ndimage.center_of_mass(comp)
+        rel = np.column_stack([ec - cc_, er - cr])
+        ang = np.arctan2(rel[:, 1], rel[:, 0])
+        rad_ = np.hypot(rel[:, 0], rel[:, 1])
+        theta = np.angle(np.sum(rad_ ** 8 * np.exp(4j * ang))) / 4
+        corners = []
+        for j in range(4):
+            phi = theta + j * np.pi / 2
+            e = np.array([np.cos(phi), np.sin(phi)])
+            sec = np.abs((ang - phi + np.pi) % (2 * np.pi) - np.pi) < np.pi / 4
+            if sec.sum() < 2:
+                break
+            corners.append(rel[sec][int(np.argmax(rel[sec] @ e))])
+        if len(corners) < 4:
+            continue
+        c = (np.array(corners) + [cc_, cr]) * f + (f - 1) / 2
+        out.append((c, c.mean(axis=0)))
+    return out
+
+
+def _lines(p, q, X, Y):
+    """Signed distance of points to the line p->q (positive on the left of p->q in x-right, y-down)."""
+    d = q - p
+    ln = np.hypot(*d) + 1e-12
+    return ((X - p[0]) * d[1] - (Y - p[1]) * d[0]) / ln
+
+
+class _QuadModel:
+    """Four facets (apex + quadrilateral) and the surroundings, each a linear brightness."""
+
+    def __init__(self, img, f, corners, apex, band_px=None):
+        self.f = f
+        small = _block(img, f)
+        self.small = small
+        c0 = apex
+        ext = 1.35 * np.max(np.hypot(*(corners - c0).T)) + 4 * f
+        # coordinates of the block centres on the full-res grid
+        lo = np.floor((c0 - ext - (f - 1) / 2) / f).astype(int)
+        hi = np.ceil((c0 + ext - (f - 1) / 2) / f).astype(int) + 1
+        lo = np.maximum(lo, 0)
+        hi = np.minimum(hi, [small.shape[1], small.shape[0]])
+        cols, rows = np.arange(lo[0], hi[0]), np.arange(lo[1], hi[1])
+        X, Y = np.meshgrid(cols * f + (f - 1) / 2, rows * f + (f - 1) / 2)
+        z = small[lo[1]:hi[1], lo[0]:hi[0]]
+        keep = np.isfinite(z)
+        if band_px is not None:
+            d = np.full(X.shape, np.inf)
+            for k in range(4):
+                for a, b in ((corners[k], corners[(k + 1) % 4]), (apex, corners[k])):
+                    d = np.minimum(d, _seg_dist(X, Y, a, b))
+            keep &= d < band_px
+        self.X, self.Y, self.z = X[keep], Y[keep], z[keep]
+        self.xm, self.ym = float(self.X.mean()), float(self.Y.mean())
+        self.xs = max(float(np.ptp(self.X)), 1.0)
+        self.soft = 0.45 * f
+        self.line_px = max(1.2, 0.6 * f)                    # ridge and edge lines: width (full-res px)
+        d_est = 2 * np.max(np.hypot(*(corners - apex).T))
+        self.halo_px = max(0.08 * d_est, 2.0 * f)            # pile-up halo outside: distance of its crest
+        self.noise = _noise(small) + 1e-12
+        self.shape = z.shape
+
+    def weights(self, p):
+        """Facet weights (4, n), surroundings weight (n,) and the line and halo columns (4, n)."""
+        apex, c = p[:2], p[2:].reshape(4, 2)
+        X, Y = self.X, self.Y
+        # orientation: corners counter-clockwise or clockwise; inside on the same side for all edges
+        area = 0.5 * sum(c[k, 0] * c[(k + 1) % 4, 1] - c[(k + 1) % 4, 0] * c[k, 1] for k in range(4))
+        sgn = 1.0 if area > 0 else -1.0
+        s, lw = self.soft, self.line_px
+        e = [-sgn * _lines(c[k], c[(k + 1) % 4], X, Y) for k in range(4)]    # inside: positive
+        r = [sgn * _lines(apex, c[k], X, Y) for k in range(4)]                # k+1's side: negative
+        w, edge_line, glow = [], 0.0, 0.0
+        for k in range(4):
+            wedge = expit(-r[k] / s) * expit(r[(k + 1) % 4] / s)
+            w.append(expit(e[k] / s) * wedge)
+            edge_line = edge_line + np.exp(-0.5 * (e[k] / lw) ** 2) * wedge
+            glow = glow + np.exp(-np.abs(e[k]) / (3 * lw)) * wedge
+        w = np.array(w)
+        inside = w.sum(axis=0)
+        out = np.clip(1.0 - inside, 0.0, 1.0)
+        ridge = 0.0
+        for k in range(4):
+            along = (X - apex[0]) * (c[k, 0] - apex[0]) + (Y - apex[1]) * (c[k, 1] - apex[1])
+            ridge = ridge + np.exp(-0.5 * (r[k] / lw) ** 2) * (along > 0)
+        ridge = ridge * inside
+        dout = np.min(np.array(e), axis=0)                                      # < 0 outside
+        t = np.maximum(-dout, 0.0) / self.halo_px
+        halo = out * t * np.exp(1.0 - t)                                        # a band beside the edge
+        extra = np.array([edge_line * out, edge_line * inside, glow, ridge, halo])
+        return w, out, extra
+
+    def design(self, p):
+        w, out, extra = self.weights(p)
+        x, y = (self.X - self.xm) / self.xs, (self.Y - self.ym) / self.xs
+        cols = []
+        for wk in (*w, out):
+            cols += [wk, wk * x, wk * y]
+        cols += list(extra)
+        return np.column_stack(cols), w, out
+
+    @staticmethod
+    def _solve(a, z):
+        ata = a.T @ a
+        return np.linalg.solve(ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata)), a.T @ z)
+
+    def residual(self, p):
+        a, _w, _o = self.design(p)
+        return (a @ self._solve(a, self.z) - self.z) / self.noise
+
+    def region_levels(self, p):
+        """Mean brightness of each facet and of the surroundings (fitted), and the residual RMS."""
+        a, w, out = self.design(p)
+        coef = self._solve(a, self.z)
+        lv = coef[:15].reshape(5, 3)[:, 0]
+        return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2)))
+
+
+def _seg_dist(X, Y, a, b):
+    ab = b - a
+    t = np.clip(((X - a[0]) * ab[0] + (Y - a[1]) * ab[1]) / max(ab @ ab, 1e-12), 0.0, 1.0)
+    return np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1])
+
+
+def _lm(fun, p, step, n_iter, f_scale=3.0):
+    """Levenberg-Marquardt with a soft-L1 loss (reweighted), forward-difference Jacobian.
+
+    A dense 10 x 10 system per iteration: cheaper than a general solver's SVD or LSMR on
+    tens of thousands of residuals.
+    """
+    def cost(r):
+        return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2) - 1))
+
+    r = fun(p)
+    c = cost(r)
+    lam = 1e-2
+    for _ in range(n_iter):
+        jm = np.empty((len(r), len(p)))
+        for j in range(len(p)):
+            q = p.copy()
+            q[j] += step
+            jm[:, j] = (fun(q) - r) / step
+        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
+        jw = jm * w[:, None]
+        a, g = jw.T @ jm, jw.T @ r
+        dia = np.diag(np.diag(a)) + 1e-12 * np.eye(len(p))
+        for _try in range(6):
+            dp = -np.linalg.solve(a + lam * dia, g)
+            rn = fun(p + dp)
+            cn = cost(rn)
+            if cn < c:
+                break
+            lam *= 4.0
+        else:
+            break
+        p, r, lam = p + dp, rn, max(lam / 3.0, 1e-6)
+        done = c - cn < 1e-6 * c or np.max(np.abs(dp)) < 0.01 * step * 10
+        c = cn
+        if done:
+            break
+    return p
+
+
+def _refine(img, corners, apex, d_px):
+    """Coarse-to-fine quadrilateral fit; returns corners (4, 2), apex (2,), model of the last level."""
+    p = np.concatenate([apex, corners.ravel()])
+    f = 1
+    while d_px / f > 48:
+        f *= 2
+    levels = []
+    while f >= 1:
+        levels.append(f)
+        f //= 2
+    if d_px > 160:                       # two pixels of a large imprint: the ridge ends place the corners
+        levels = [v for v in levels if v >= 2]
+    model = None
+    for i, f in enumerate(levels):
+        band = None if i == 0 else max(6.0 * f, 0.06 * d_px)
+        model = _QuadModel(img, f, p[2:].reshape(4, 2), p[:2], band)
+        if len(model.z) < 60:
+            continue
+        if i == 0:
+            # the coarse outline may hold a halo or pile-up: start from it and from shrunk copies
+            best = None
+            for shrink in (1.0, 0.85, 0.7):
+                q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
+                q = _lm(model.residual, q, 0.05 * f, 6)
+                c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                if best is None or c < best[0]:
+                    best = (c, q)
+            p = _lm(model.residual, best[1], 0.05 * f, 20)
+        else:
+            p = _lm(model.residual, p, 0.05 * f, 8)
+    return p[2:].reshape(4, 2), p[:2], model
+
+
+def _ridge_corners(img, corners, apex, noise, delta_px=2.5):
+    """Move each corner to where the ridge between its two facets ends.
+
+    Along the line from the apex through the fitted corner, the brightness difference
+    across the ridge (samples ``delta_px`` either side, image smoothed by 1 px) is constant
+    on the ridge and falls to zero beyond the corner; samples at lateral offset delta lie
+    inside the facets only farther than delta / tan(alpha / 2) from the corner (alpha the
+    corner's angle), so the corner is that far beyond the half-contrast point. A ridge whose
+    contrast is under 4 noise levels leaves its corner as fitted.
+    """
+    out = corners.copy()
+    ny, nx = img.shape
+    lo = np.maximum(np.floor(np.min(np.vstack([corners, apex]), axis=0)).astype(int) - 40, 0)
+    hi = np.minimum(np.ceil(np.max(np.vstack([corners, apex]), axis=0)).astype(int) + 41, [nx, ny])
+    sm = ndimage.gaussian_filter(img[lo[1]:hi[1], lo[0]:hi[0]], 1.0)
+    for k in range(4):
+        v = corners[k] - apex
+        length = float(np.hypot(*v))
+        e = v / length
+        nrm = np.array([-e[1], e[0]])
+        a, b = corners[k - 1] - corners[k], corners[(k + 1) % 4] - corners[k]
+        alpha = np.arccos(np.clip(a @ b / (np.hypot(*a) * np.hypot(*b)), -1, 1))
+        t = np.arange(0.3 * length, 1.25 * length, 0.5)
+        pts = apex + t[:, None] * e
+        pl, pr = pts + delta_px * nrm, pts - delta_px * nrm
+        il = ndimage.map_coordinates(sm, [pl[:, 1] - lo[1], pl[:, 0] - lo[0]], order=1, mode="nearest")
+        ir = ndimage.map_coordinates(sm, [pr[:, 1] - lo[1], pr[:, 0] - lo[0]], order=1, mode="nearest")
+        con = il - ir
+        ridge = (t > 0.35 * length) & (t < 0.8 * length)
+        c0 = float(np.median(con[ridge]))
+        dn = np.diff(con[ridge][::2])
+        sd = 1.4826 * np.median(np.abs(dn - np.median(dn))) / np.sqrt(2) + 1e-12
+        if abs(c0) < 4 * max(sd, noise / 2):
+            continue
+        cn = ndimage.gaussian_filter1d(con / c0, 2.0)
+        above = np.flatnonzero(cn >= 0.5)
+        if not len(above) or above[-1] + 1 >= len(t):
+            continue
+        j = above[-1]
+        t_half = t[j] + (cn[j] - 0.5) / max(cn[j] - cn[j + 1], 1e-9) * (t[j + 1] - t[j])
+        t_c = t_half + delta_px / np.tan(alpha / 2)
+        if abs(t_c - length) < 0.15 * length:
+            out[k] = apex + t_c * e
+    return out
+
+
+def _angles_deg(c):
+    out = []
+    for k in range(4):
+        a, b = c[k - 1] - c[k], c[(k + 1) % 4] - c[k]
+        out.append(np.degrees(np.arccos(np.clip(a @ b / (np.hypot(*a) * np.hypot(*b)), -1, 1))))
+    return np.array(out)
+
+
+def find_imprints(img: np.ndarray, min_diagonal_px: float = MIN_DIAGONAL_PX) -> list:
+    """Coarse candidates of single imprints: list of (corners (4, 2) [x, y] px, apex (2,) px)."""
+    return _coarse(np.asarray(img, np.float64), min_diagonal_px)
+
+
+def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float = MIN_DIAGONAL_PX) -> tuple:
+    """Find and measure every single Vickers imprint in a light or electron micrograph.
+
+    Parameters
+    ----------
+    img : ndarray (rows, cols)
+        Grey values (any scale).
+    pixel_um : float
+        Pixel size (µm).
+    min_diagonal_px : float
+        Smallest mean diagonal (px) taken as an imprint.
+
+    Returns
+    -------
+    imprints : list of Imprint
+        Corners (µm, in order around the imprint), diagonals corner to corner, centre (the
+        corners' mean), diameter of the circle through the corners, projected area of the
+        quadrilateral; depth fields NaN. ``cut_by_border`` when a corner lies within a pixel
+        of the border or beyond.
+    bar_rows : int
+        Rows of the information bar left out at the bottom (0: none).
+    """
+    img = np.asarray(img, np.float64)
+    bar = info_bar_rows(img)
+    work = img[:img.shape[0] - bar] if bar else img
+    ny, nx = work.shape
+    out = []
+    for corners0, apex0 in _coarse(work, min_diagonal_px):
+        d0 = 0.5 * (np.hypot(*(corners0[0] - corners0[2])) + np.hypot(*(corners0[1] - corners0[3])))
+        if d0 < min_diagonal_px:
+            continue
+        corners, apex, model = _refine(work, corners0, apex0, d0)
+        if model is None:
+            continue
+        lv, rms = model.region_levels(np.concatenate([apex, corners.ravel()]))
+        # a corner whose fainter edge has less than half the contrast of the ridge between its
+        # two facets is placed better by the end of that ridge
+        edge_con = np.abs(lv[:4] - lv[4])
+        ridge_con = np.abs(lv[[3, 0, 1, 2]] - lv[:4])                   # corner k: facets k-1 and k
+        weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.5 * ridge_con[k]]
+        if weak:
+            # the ridge end overrides the fit only where they disagree by more than its own
+            # uncertainty (about 2 px on renders)
+            moved = _ridge_corners(work, corners, apex, _noise(work))
+            far = [k for k in weak if np.hypot(*(moved[k] - corners[k])) > RIDGE_OVERRIDE_PX]
+            corners = corners.copy()
+            corners[far] = moved[far]
+        d1 = np.hypot(*(corners[0] - corners[2]))
+        d2 = np.hypot(*(corners[1] - corners[3]))
+        contrast = float(np.max(np.abs(lv[:4] - lv[4])))
+        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and contrast > 2 * model.noise
+                and rms < MAX_FIT_RMS * model.noise and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0)):
+            continue
+        c_um = corners * pixel_um
+        dd1, dd2, orient = diagonals(c_um)
+        cx, cy, crad = circle_fit(c_um)
+        cut = bool(np.any((corners < 1.0) | (corners > np.array([nx, ny]) - 2.0)))
+        x, y = c_um[:, 0], c_um[:, 1]
+        area = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+        nan = float("nan")
+        out.append(Imprint(x_um=float(x.mean()), y_um=float(y.mean()), diameter_um=float(2 * crad),
+                           diag1_um=float(dd1), diag2_um=float(dd2), depth_nm=nan, hd_ratio=nan,
+                           orientation_deg=float(orient), pileup_nm=nan, corners_um=c_um, fit_rms=rms / model.noise,
+                           n_pixels=int(len(model.z)), contrast=contrast / max(abs(lv[4]), 1e-12), area_um2=area,
+                           cut_by_border=cut, contour_um=np.vstack([c_um, c_um[:1]]),
+                           floor_um=(float(apex[0] * pixel_um), float(apex[1] * pixel_um))))
+    return out, bar
