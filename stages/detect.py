@@ -324,7 +324,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
                    rms=cat["rms"], n_points=cat["n"], shift_mm=cat["shift"], ok=ok)
 
 
-def dedupe(xy: np.ndarray, score: np.ndarray, min_dist: float) -> np.ndarray:
+def dedupe(xy: np.ndarray, score: np.ndarray, min_dist) -> np.ndarray:
     """Keep the best-scoring point of each cluster of points closer than ``min_dist``.
 
     Parameters
@@ -332,22 +332,30 @@ def dedupe(xy: np.ndarray, score: np.ndarray, min_dist: float) -> np.ndarray:
     xy : ndarray, shape (n, 2)
         Positions (any length unit, the same as ``min_dist``).
     score : ndarray, shape (n,)
-        Higher is better.
-    min_dist : float
-        Points within this distance of a kept, better point are dropped.
+        Higher is better (ties: the earlier point).
+    min_dist : float or ndarray, shape (n,)
+        One distance, or a radius per point: points i and j are one cluster
+        when they lie within ``max(r_i, r_j)`` of each other.
 
     Returns
     -------
     ndarray of int
         Indices of the kept points, ascending.
     """
-    order = np.argsort(-np.asarray(score))
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    r = np.broadcast_to(np.asarray(min_dist, float), (len(xy),))
+    if len(xy) == 0:
+        return np.zeros(0, int)
+    order = np.argsort(-np.asarray(score, float), kind="stable")
     tree = cKDTree(xy)
+    r_max = float(r.max())
     taken = np.zeros(len(xy), bool)
     keep = []
     for i in order:
         if taken[i]:
             continue
         keep.append(i)
-        taken[tree.query_ball_point(xy[i], min_dist)] = True
+        near = np.asarray(tree.query_ball_point(xy[i], max(r[i], r_max)), int)
+        d = np.hypot(*(xy[near] - xy[i]).T)
+        taken[near[d <= np.maximum(r[i], r[near])]] = True
     return np.array(sorted(keep), int)

@@ -10,6 +10,7 @@ import dataclasses
 
 import numpy as np
 
+from . import detect
 from .indent_geometry import Imprint
 
 __all__ = ["LARGE_IMPRINT_PX", "rounding_px", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags"]
@@ -71,13 +72,12 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
 
 
 def dedupe(imps: list) -> list:
-    """Keep one of imprints closer than half a diameter (the one with more pixels)."""
-    keep = []
-    for m in sorted(imps, key=lambda m: -m.n_pixels):
-        if all(np.hypot(m.x_um - k.x_um, m.y_um - k.y_um) > 0.5 * max(m.diameter_um, k.diameter_um)
-               for k in keep):
-            keep.append(m)
-    return keep
+    """Keep one of imprints closer than half a diameter (the one with more pixels), most pixels first."""
+    if not imps:
+        return []
+    kept = set(detect.dedupe([[m.x_um, m.y_um] for m in imps], [m.n_pixels for m in imps],
+                             0.5 * np.array([m.diameter_um for m in imps], float)).tolist())
+    return [imps[i] for i in sorted(range(len(imps)), key=lambda i: -imps[i].n_pixels) if i in kept]
 
 
 def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,
