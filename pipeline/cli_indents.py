@@ -32,22 +32,8 @@ def cmd_indents(args) -> int:
     return exit_status(res.summary)
 
 
-def _finish_render(render, out) -> int:
-    """Write array.toml and truth.json beside a render's image; print the folder."""
-    from markcal.fixtures.indent_maps import array_toml
-    from markcal.reports.files import atomic_write_text, write_json
-    t = render.truth
-    atomic_write_text(os.path.join(out, "array.toml"),
-                      array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
-    write_json(os.path.join(out, "truth.json"), t)
-    print(os.path.abspath(out))
-    return 0
-
-
 def cmd_render_afm(args) -> int:
-    from markcal.fixtures.indent_maps import AfmOptions, asylum_ibw, render_afm, tiff_bytes
-    from markcal.reports.files import atomic_write_bytes
-    from markcal.stages.image_io import gsf_bytes
+    from markcal.fixtures.indent_maps import AfmOptions, render_afm, save_indent_render
 
     say = progress(args.quiet)
     if args.single:
@@ -55,18 +41,10 @@ def cmd_render_afm(args) -> int:
     o = AfmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
                    size_px=args.size_px, field_um=args.field_um, facet_bulge=args.facet_bulge)
     say(f"rendering AFM map, seed {args.seed}")
-    r = render_afm(args.seed, o)
-    os.makedirs(args.out, exist_ok=True)
-    fmts = {f.strip() for f in args.formats.split(",") if f.strip()}
-    if "tif" in fmts:
-        atomic_write_bytes(os.path.join(args.out, "heights.tif"), tiff_bytes(r.data, r.pixel_um, zunit="nm"))
-    if "gsf" in fmts:
-        ext_m = r.pixel_um * 1e-6 * r.data.shape[1]
-        atomic_write_bytes(os.path.join(args.out, "heights.gsf"),
-                           gsf_bytes(r.data.astype("float64") * 1e-9, ext_m, ext_m, "m", "Height"))
-    if "ibw" in fmts:
-        atomic_write_bytes(os.path.join(args.out, "heights.ibw"), asylum_ibw(r))
-    return _finish_render(r, args.out)
+    save_indent_render(args.out, render_afm(args.seed, o), "heights",
+                       formats={f.strip() for f in args.formats.split(",") if f.strip()})
+    print(os.path.abspath(args.out))
+    return 0
 
 
 def _render_single(args, say) -> int:
@@ -88,17 +66,15 @@ def _render_single(args, say) -> int:
 
 
 def cmd_render_om(args) -> int:
-    from markcal.fixtures.indent_maps import OmOptions, render_om, tiff_bytes
-    from markcal.reports.files import atomic_write_bytes
+    from markcal.fixtures.indent_maps import OmOptions, render_om, save_indent_render
 
     say = progress(args.quiet)
     o = OmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
                   size_px=args.size_px, pixel_um=args.pixel_um, bits=args.bits)
     say(f"rendering OM micrograph, seed {args.seed}")
-    r = render_om(args.seed, o)
-    os.makedirs(args.out, exist_ok=True)
-    atomic_write_bytes(os.path.join(args.out, "image.tif"), tiff_bytes(r.data, r.pixel_um))
-    return _finish_render(r, args.out)
+    save_indent_render(args.out, render_om(args.seed, o), "image")
+    print(os.path.abspath(args.out))
+    return 0
 
 
 def _positive(v):
