@@ -76,6 +76,14 @@ def test_bank_is_deterministic_and_tracks_a_ramp():
     assert np.all(np.abs(c[-5:] - mid[-5:]) < np.abs(ramp[-5:] - mid[-5:]))  # closer than hold-last
 
 
+def test_trend_filter_predicts_a_ramp_to_mid_interval():
+    """The constant-velocity filter on a noise-free ramp: C_k is the level at t_k + Δt/2 (measured: exact)."""
+    ramp = np.outer(T_S * 0.002, [1.0, -1.0, 0.5])
+    mid = np.outer((T_S + 5) * 0.002, [1.0, -1.0, 0.5])
+    c = compensate(T_S, ramp, "trend")
+    assert np.abs(c[-5:] - mid[-5:]).max() < 1e-6
+
+
 @pytest.mark.parametrize("method", list(METHODS))
 def test_causal(method):
     """C_k must not change when samples after t_k change."""
