@@ -215,6 +215,10 @@ def test_ctb_bytes_by_hand():
     y_tab = np.frombuffer(data[65 * 65 * 2:], "<u2").reshape(65, 65)
     assert x_tab[3, 10] == 32778 and y_tab[3, 10] == 32747            # 32767.5 - 20.7 = 32746.8 -> 32747
     assert x_tab[10, 3] == 32768 and x_tab[0, 0] == 32768             # 32767.5 rounds to even
+    # read back: (32778 - 32767.5) / 1000 = 0.0105 mm, (32747 - 32767.5) / 1000 = -0.0205 mm, 0.0005 elsewhere
+    back = fmt.decode_ctb(data, 1000.0, fmt.CtbOptions(content="offset"))
+    assert back.dx_mm[3, 10] == pytest.approx(0.0105, abs=1e-12) and back.dy_mm[3, 10] == pytest.approx(-0.0205, abs=1e-12)
+    assert back.dx_mm[0, 0] == pytest.approx(0.0005, abs=1e-12)
     # absolute content adds the node position: node (ix = 10) at (10 - 32)·1023.984375 bits
     data = fmt.encode_ctb(t, 1000.0)
     x_abs = np.frombuffer(data[:65 * 65 * 2], "<u2").reshape(65, 65)

@@ -141,3 +141,26 @@ def test_step_metrics_of_a_known_move():
     assert m.mae_um == pytest.approx(14.4625, abs=1e-9)
     e = np.array([0, 100, 10, -3, 2, -0.5, 0.2, 0])
     assert m.std_um == pytest.approx(np.sqrt(np.mean((e - e.mean()) ** 2)), abs=1e-9)
+
+
+# --- the circumscribed circle of an imprint ------------------------------------------------------
+
+def test_circle_fit_is_the_geometric_least_squares_circle():
+    """stages.indent_geometry.circle_fit against scipy's least_squares on the geometric distances
+    (an independent solver of the same definition) on noisy points of a 100° arc, where the algebraic
+    (Kasa) circle is visibly different; and exact on four points of a known circle."""
+    from scipy.optimize import least_squares
+    from markcal.stages.indent_geometry import circle_fit
+    rng = np.random.default_rng(2)
+    ang = np.radians(np.linspace(10, 110, 7))
+    p = np.column_stack([1.0 + 3.0 * np.cos(ang), -2.0 + 3.0 * np.sin(ang)]) + rng.normal(0, 0.05, (7, 2))
+    ref = least_squares(lambda q: np.hypot(p[:, 0] - q[0], p[:, 1] - q[1]) - q[2], [0.0, 0.0, 1.0],
+                        xtol=1e-15, ftol=1e-15, gtol=1e-15).x
+    got = np.array(circle_fit(p))
+    assert np.abs(got - ref).max() < 1e-7
+    kasa, *_ = np.linalg.lstsq(np.column_stack([2 * p, np.ones(7)]), (p ** 2).sum(1), rcond=None)
+    assert np.hypot(*(kasa[:2] - ref[:2])) > 1e-3          # the case tells the two circles apart
+    # four corners at 0°, 80°, 200°, 290° of the circle centred (0.5, 0.25), radius 2: exact
+    a = np.radians([0, 80, 200, 290])
+    cx, cy, r = circle_fit(np.column_stack([0.5 + 2 * np.cos(a), 0.25 + 2 * np.sin(a)]))
+    assert (cx, cy, r) == pytest.approx((0.5, 0.25, 2.0), abs=1e-12)
