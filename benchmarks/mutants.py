@@ -84,7 +84,7 @@ TESTS = {
                "by_hand or real_cor or a3200 or permuted or all_zero or correxion_round"],
     "afm": ["tests/test_reference_values.py", "tests/test_indents.py", "-k",
             "circle or afm_accuracy or curved or ibw_single or recentres"],
-    "om": ["tests/test_indents.py::test_om_accuracy_against_truth"],
+    "om": ["tests/test_indents.py::test_om_small_dots_on_the_sub_pixel_grid"],
     "rbf": ["tests/test_design_claims.py", "tests/test_detect_rbf.py", "-k", "ols or rbf or inverse_map"],
     "detect": ["tests/test_ring_refinement.py"],
     "servo": ["tests/test_reference_values.py", "-k", "metrics"],

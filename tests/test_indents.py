@@ -345,3 +345,17 @@ def test_afm_window_recentres_on_an_off_centre_candidate():
         assert np.hypot(imp.x_um - tr["x_um"], imp.y_um - tr["y_um"]) < 0.004, off
         assert abs(imp.diameter_um - _true_diameter([tr])[0]) < 0.004, off
         assert abs(imp.depth_nm - tr["depth_nm"]) < 0.5, off
+
+
+def test_om_small_dots_on_the_sub_pixel_grid(tmp_path):
+    """1 µm marks (radius under 8 px) are modelled on a 2 x 2 sub-pixel grid centred in each pixel.
+    Measured (seed 34): centre RMS 3.1 nm, max 5.3 nm, |Δd| 9.5 nm; a grid shifted by a quarter pixel
+    puts every centre 20-27 nm off in y."""
+    r = render_om(34, OmOptions(rows=2, cols=2, pitch_um=6.0, size_px=160, nominal_um=1.0, bits=16))
+    path, spec = _write(str(tmp_path), r)
+    t = run_indents([path], read_array_spec(spec)).indents
+    assert len(t["id"]) == 4
+    tr = _match(t, r.truth)
+    dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
+    assert _rms(dc) <= 0.006 and dc.max() <= 0.009
+    assert np.abs(t["diameter_um"] - _true_diameter(tr)).max() <= 0.015
