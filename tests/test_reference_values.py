@@ -164,3 +164,22 @@ def test_circle_fit_is_the_geometric_least_squares_circle():
     a = np.radians([0, 80, 200, 290])
     cx, cy, r = circle_fit(np.column_stack([0.5 + 2 * np.cos(a), 0.25 + 2 * np.sin(a)]))
     assert (cx, cy, r) == pytest.approx((0.5, 0.25, 2.0), abs=1e-12)
+
+
+# --- paper 004 Table 1 statistics ----------------------------------------------------------------
+
+def test_deviation_stats_by_hand():
+    """Max and RMS of ux, uy, |δ| inside a centred square (paper 004 Table 1). Points (mm) and deviations:
+    (0, 0): (3, 4) -> |δ| 5;  (25, -25): (0, -1) -> 1, on the border of the 50 mm square (kept);
+    (30, 0): (6, 8) -> 10, outside it. Over all: max_x 6, max_y 8, max 10, rms_x = √(45/3) = 3.873,
+    rms_y = √(81/3) = 5.196, rms = √(126/3) = 6.481. Inside ±25 mm: rms_x = √(9/2) = 2.121,
+    rms_y = √(17/2) = 2.915, rms = √(26/2) = 3.606, max 5."""
+    from markcal.stages.deviation import deviation_stats
+    xy = np.array([[0.0, 0.0], [25.0, -25.0], [30.0, 0.0]])
+    d = np.array([[3.0, 4.0], [0.0, -1.0], [6.0, 8.0]])
+    a = deviation_stats(xy, d)
+    assert a["n"] == 3 and (a["max_x_mm"], a["max_y_mm"], a["max_mm"]) == (6.0, 8.0, 10.0)
+    assert (a["rms_x_mm"], a["rms_y_mm"], a["rms_mm"]) == pytest.approx((15 ** 0.5, 27 ** 0.5, 42 ** 0.5), abs=1e-12)
+    b = deviation_stats(xy, d, half_width_mm=25.0)
+    assert b["n"] == 2 and b["max_mm"] == 5.0
+    assert (b["rms_x_mm"], b["rms_y_mm"], b["rms_mm"]) == pytest.approx((4.5 ** 0.5, 8.5 ** 0.5, 13 ** 0.5), abs=1e-12)

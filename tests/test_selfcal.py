@@ -47,7 +47,7 @@ def test_accuracy_at_paper_noise_levels(noise_xy_um, noise_theta_deg):
         sdt.append(et.std(ddof=1))
         # the estimate is as good as the covariance bound says (not worse than 1.3 x)
         bound = np.sqrt(np.mean(np.r_[sol.predicted_sd_gx_um.ravel(), sol.predicted_sd_gy_um.ravel()] ** 2))
-        assert 0.7 < np.sqrt(np.mean([ex.var(), ey.var()])) / bound < 1.3
+        assert 0.85 < np.sqrt(np.mean([ex.var(), ey.var()])) / bound < 1.3     # measured 1.055-1.129
         assert sol.sigma_xy_um == pytest.approx(noise_xy_um, rel=0.2)
         # limits at ~1.5x the worst measured on seeds 11-13 (both noise levels, in units of the noise):
         # max |E_G| 3.27 x noise_xy, max |E_Gθ| 2.69 x noise_θ, |ΔO| 1.71 µrad per µm of noise
