@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 DEMO   := demo_out
 
-.PHONY: demo test bench sysdeps clean
+.PHONY: demo test bench sysdeps browser mutants clean
 
 # Open3D needs the system library libusb-1.0 (import open3d fails without it).
 sysdeps:
@@ -17,6 +17,21 @@ sysdeps:
 	     { echo "apt-get could not install libusb-1.0-0; install it and re-run"; exit 1; }; \
 	  else \
 	    echo "markcal needs the system library libusb-1.0 for Open3D: install it (e.g. sudo apt-get install libusb-1.0-0) and re-run"; exit 1; \
+	  fi; \
+	fi
+
+# The browser test (tests/test_browser.py) drives Debian's chromium; a test never installs packages,
+# so the test target does it here. In CI (CI=true) the browser test fails when chromium is missing.
+browser:
+	@if ! command -v chromium >/dev/null 2>&1 && [ ! -x /usr/bin/chromium ]; then \
+	  if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null; then \
+	    echo "installing chromium with apt-get (needed by tests/test_browser.py)"; \
+	    (apt-get install -y -q chromium >/dev/null 2>&1 || \
+	     (apt-get update -q >/dev/null && apt-get install -y -q chromium >/dev/null)) || \
+	     { echo "apt-get could not install chromium; install it and re-run (the browser test needs it)"; exit 1; }; \
+	  else \
+	    echo "tests/test_browser.py needs Debian's chromium: install it (e.g. sudo apt-get install chromium);"; \
+	    echo "without it the browser test is skipped here and fails in CI"; \
 	  fi; \
 	fi
 
@@ -37,8 +52,14 @@ demo: sysdeps $(STAMP)
 	@echo ""
 	@echo "batch index: $$(pwd)/$(DEMO)/batch/index.html"
 
-test: sysdeps $(STAMP)
+test: sysdeps browser $(STAMP)
 	$(PY) -m pytest
+
+# Mutation score of the measurement stages: each mutant runs only its stage's fast tests with -x
+# (benchmarks/mutants.py; a few minutes on 2 cores). Prints the score, the survivors and which
+# survivors are equivalent.
+mutants: sysdeps $(STAMP)
+	$(PY) benchmarks/mutants.py
 
 bench: sysdeps $(STAMP)
 	$(PY) -m pip install -q -e '.[test,bench]'

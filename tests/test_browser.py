@@ -1,7 +1,9 @@
 """The batch index and a per-input report open in headless Chromium: no console errors,
 summary table visible, every image loaded, every link resolves.
 
-Needs Debian's ``chromium``: installed with apt-get when running as root, else skipped.
+Needs Debian's ``chromium`` (``make test`` installs it when missing; a test never installs
+packages). Without it the test is skipped on a developer's machine and fails in CI (``CI=true``),
+where a missing browser is a broken setup, not a reason to test less.
 """
 import os
 import shutil
@@ -16,22 +18,18 @@ from markcal.pipeline.cli import main
 CHROMIUM = "/usr/bin/chromium"
 
 
+def _missing(what: str):
+    msg = f"{what}: run `make test` (installs Debian's chromium when root) or install it by hand"
+    if os.environ.get("CI", "").lower() in ("true", "1", "yes"):
+        pytest.fail(f"CI: {msg}")
+    pytest.skip(msg)
+
+
 def _chromium() -> str:
     path = shutil.which("chromium") or (CHROMIUM if os.path.exists(CHROMIUM) else None)
-    if path:
-        return path
-    if os.geteuid() != 0 or not shutil.which("apt-get"):
-        pytest.skip("chromium is not installed and cannot be installed here (not root or no apt-get): "
-                    "install Debian's chromium package to run the browser test")
-    for cmd in (["apt-get", "install", "-y", "-q", "chromium"],
-                ["sh", "-c", "apt-get update -q && apt-get install -y -q chromium"]):
-        try:
-            r = subprocess.run(cmd, capture_output=True, text=True, timeout=900)
-        except subprocess.TimeoutExpired:
-            continue
-        if r.returncode == 0 and shutil.which("chromium"):
-            return shutil.which("chromium")
-    pytest.skip("apt-get could not install chromium (no network or no package): browser test skipped")
+    if not path:
+        _missing("chromium is not installed")
+    return path
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +64,10 @@ def _check_page(pw_page, url):
 
 def test_index_and_report_in_chromium(batch_out):
     exe = _chromium()
-    sync_api = pytest.importorskip("playwright.sync_api")
+    try:
+        from playwright import sync_api
+    except ImportError:
+        _missing("playwright is not installed (pip install -e '.[test]')")
     with sync_api.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=exe, headless=True, args=["--no-sandbox"])
         try:

@@ -33,14 +33,18 @@ def etas():
 
 
 def test_paper_filter_reproduces_table2(etas):
-    """Paper Table 2: η 76 % (X/Y), 78 % (Z) on a slow monotonic drift."""
+    """Paper Table 2: η 76 % (X/Y), 78 % (Z) on a slow monotonic drift.
+
+    Measured medians over seeds 0-9: 75.1 / 74.9 / 76.1 %; the printed reading of eq. 10 gives
+    93.5 / 94.3 / 94.9 %, so the band (71-80 %) tells the two readings apart."""
     med = np.median(etas["thermal", "paper"], axis=0)
-    assert np.all((med > 65) & (med < 85)), med
+    assert np.all((med > 71) & (med < 80)), med
 
 
 def test_better_estimator_reaches_90(etas):
     med = np.median(etas["thermal", "kalman"], axis=0)
-    assert np.all(med >= 90), med
+    # measured medians 94.5 / 94.9 / 95.4 % (residual 5.5 % at worst; the limit allows ~1.45x that, 8 %)
+    assert np.all(med >= 92), med
     assert np.all(med > np.median(etas["thermal", "paper"], axis=0) + 10)
 
 
@@ -72,6 +76,14 @@ def test_bank_is_deterministic_and_tracks_a_ramp():
     assert np.all(np.abs(c[-5:] - mid[-5:]) < np.abs(ramp[-5:] - mid[-5:]))  # closer than hold-last
 
 
+def test_trend_filter_predicts_a_ramp_to_mid_interval():
+    """The constant-velocity filter on a noise-free ramp: C_k is the level at t_k + Δt/2 (measured: exact)."""
+    ramp = np.outer(T_S * 0.002, [1.0, -1.0, 0.5])
+    mid = np.outer((T_S + 5) * 0.002, [1.0, -1.0, 0.5])
+    c = compensate(T_S, ramp, "trend")
+    assert np.abs(c[-5:] - mid[-5:]).max() < 1e-6
+
+
 @pytest.mark.parametrize("method", list(METHODS))
 def test_causal(method):
     """C_k must not change when samples after t_k change."""
@@ -101,13 +113,21 @@ def test_cli_files(tmp_path):
     assert summ["method"] == "kalman" and summ["truth"] is True
     for a in "xyz":
         assert summ[f"eta_{a}_pct"] == pytest.approx(summ[f"eta_true_{a}_pct_kalman"])
-    # the file's compensation is the chosen method's, recomputed independently here
+    # the file holds the stage's compensation (a consistency check of the writer, not a truth: the
+    # truths are the η bands above and the hand values in test_reference_values.py)
     d = read_csv(s / "drift.csv")
     m = np.column_stack([d["dx_um"], d["dy_um"], d["dz_um"]])
     assert np.allclose(np.column_stack([c["cx_um"], c["cy_um"], c["cz_um"]]), compensate(d["t_min"], m, "kalman"))
     out2 = tmp_path / "p"
     assert main(["drift", str(s / "drift.csv"), "--method", "paper", "--out", str(out2), "--no-report", "--quiet"]) == 0
     assert json.load(open(out2 / "summary.json"))["truth"] is False
+    # the paper method's file against eq. 10 (text reading) written out here: C_k = 0.2·m_k + 0.8·C_{k-1}
+    c2 = read_csv(out2 / "compensation.csv")
+    want, prev = np.zeros_like(m), np.zeros(3)
+    for k in range(len(m)):
+        prev = 0.2 * m[k] + 0.8 * prev
+        want[k] = prev
+    assert np.allclose(np.column_stack([c2["cx_um"], c2["cy_um"], c2["cz_um"]]), want, atol=1e-9, rtol=0)
 
 
 def test_bad_drift(tmp_path, capsys):

@@ -182,3 +182,45 @@ def test_cli_export_list_inspect(scan_dir, selfcal_dir, tmp_path, capsys):
     assert "not a correction table" in capsys.readouterr().err
     assert main(["export", "cor", scan_dir, "--out", str(tmp_path / "x.cor"), "--quiet"]) == 1
     assert "--lens-mm" in capsys.readouterr().err and not os.path.exists(tmp_path / "x.cor")
+
+
+def _one_node_table(ix, iy, dx_mm, dy_mm, spacing_units, units_per_mm):
+    nodes = (np.arange(65) - 32) * spacing_units / units_per_mm
+    dx, dy = np.zeros((65, 65)), np.zeros((65, 65))
+    dx[iy, ix], dy[iy, ix] = dx_mm, dy_mm
+    return GridCorrection(nodes, nodes.copy(), dx, dy)
+
+
+def test_cor_bytes_by_hand():
+    """JCZ_COR_2_1 default layout, worked out by hand: entries (dx, dy) int32 from byte 36, the inner
+    index along x (entry number iy·65 + ix), each the negated command offset in galvo units
+    (sign "subtract"): +0.0102 mm at 1000 units/mm -> -10.2 -> -10; -0.0207 mm -> +20.7 -> +21."""
+    t = _one_node_table(10, 3, 0.0102, -0.0207, 1024.0, 1000.0)
+    data = fmt.encode_cor(t, 1000.0)
+    assert struct.unpack_from("<d", data, 28)[0] == 1000.0
+    at = 36 + 8 * (3 * 65 + 10)
+    assert struct.unpack_from("<2i", data, at) == (-10, 21)
+    assert struct.unpack_from("<2i", data, 36 + 8 * (10 * 65 + 3)) == (0, 0)        # not transposed
+    back, scale = fmt.decode_cor(data)
+    assert back.dx_mm[3, 10] == pytest.approx(0.010, abs=1e-12) and back.dy_mm[3, 10] == pytest.approx(-0.021, abs=1e-12)
+    assert back.x_mm[10] == pytest.approx((10 - 32) * 1.024, abs=1e-12)              # node 10 at -22 x 1024 units
+
+
+def test_ctb_bytes_by_hand():
+    """RTC4 .ctb, content "offset": X table then Y table, uint16 offset binary (32767.5 + offset·bits/mm),
+    inner index along x: +0.0102 mm at 1000 bits/mm -> 32777.7 -> 32778 at entry iy·65 + ix of the X table."""
+    t = _one_node_table(10, 3, 0.0102, -0.0207, 65535.0 / 64, 1000.0)
+    data = fmt.encode_ctb(t, 1000.0, fmt.CtbOptions(content="offset"))
+    x_tab = np.frombuffer(data[:65 * 65 * 2], "<u2").reshape(65, 65)
+    y_tab = np.frombuffer(data[65 * 65 * 2:], "<u2").reshape(65, 65)
+    assert x_tab[3, 10] == 32778 and y_tab[3, 10] == 32747            # 32767.5 - 20.7 = 32746.8 -> 32747
+    assert x_tab[10, 3] == 32768 and x_tab[0, 0] == 32768             # 32767.5 rounds to even
+    # read back: (32778 - 32767.5) / 1000 = 0.0105 mm, (32747 - 32767.5) / 1000 = -0.0205 mm, 0.0005 elsewhere
+    back = fmt.decode_ctb(data, 1000.0, fmt.CtbOptions(content="offset"))
+    assert back.dx_mm[3, 10] == pytest.approx(0.0105, abs=1e-12) and back.dy_mm[3, 10] == pytest.approx(-0.0205, abs=1e-12)
+    assert back.dx_mm[0, 0] == pytest.approx(0.0005, abs=1e-12)
+    # absolute content adds the node position: node (ix = 10) at (10 - 32)·1023.984375 bits
+    data = fmt.encode_ctb(t, 1000.0)
+    x_abs = np.frombuffer(data[:65 * 65 * 2], "<u2").reshape(65, 65)
+    assert x_abs[3, 10] == int(np.rint(32767.5 + (10 - 32) * 65535.0 / 64 + 10.2))
+    assert x_abs[10, 3] == int(np.rint(32767.5 + (3 - 32) * 65535.0 / 64))

@@ -1,9 +1,12 @@
 """Indents flow: readers, levelling, AFM and OM measurement against renderer truth, CLI, bad input.
 
-Small renders (3 x 3 arrays, 256 x 256 px) keep this file fast; the tolerances are the
-issue's goals (AFM: diameter RMS <= 20 nm, depth RMS <= 2 nm, centre RMS <= 15 nm;
-OM: centre RMS <= 20 nm, diameter within +-0.1 µm). Seeds here are 1-40; the
-benchmark sweep uses 1000+.
+Small renders (3 x 3 arrays, 256 x 256 px) keep this file fast. The limits are about 1.5-2x the
+worst measured on these fixed seeds (the measured worst is written beside each), far inside the
+issue's goals (AFM: diameter RMS <= 20 nm, depth RMS <= 2 nm, centre RMS <= 15 nm; OM: centre RMS
+<= 20 nm, diameter within +-0.1 µm), which stay in the benchmark sweep (seeds 1000+). The true
+diameter is the circumscribed circle's of the true corners, worked out here: the four corners of a
+rhombus with diagonals d1, d2 lie at d1/2 and d2/2 from its centre, so the least-squares circle
+through them (centred there by symmetry) has diameter (d1 + d2)/2.
 """
 import json
 import os
@@ -51,6 +54,11 @@ def _match(table, truth):
     return [truth["imprints"][j] for j in out]
 
 
+def _true_diameter(imprints):
+    """Equivalent diameter (µm) of the true imprints from their true diagonals: (d1 + d2)/2."""
+    return np.array([(i["diag1_um"] + i["diag2_um"]) / 2 for i in imprints])
+
+
 def _rms(a):
     return float(np.sqrt(np.mean(np.square(a))))
 
@@ -75,38 +83,47 @@ def test_afm_accuracy_against_truth(afm_pair):
         tr = _match(t, truth)
         assert sorted(int(i["row"]) * 3 + int(i["col"]) for i in tr) == list(range(9))
         assert np.all(t["id"] == [i["row"] * 3 + i["col"] for i in tr])   # indexing matches truth
-        dd = t["diameter_um"] - [i["diameter_um"] for i in tr]
+        dd = t["diameter_um"] - _true_diameter(tr)
         dz = t["depth_nm"] - [i["depth_nm"] for i in tr]
         dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
-        assert _rms(dd) <= 0.020, dd
-        assert _rms(dz) <= 2.0, dz
-        assert _rms(dc) <= 0.015, dc
-        assert np.all(np.abs(t["hd_ratio"] - [i["hd_ratio"] for i in tr]) < 0.004)
+        # measured worst over seeds 11 (1 µm) and 12 (2 µm): diameter RMS 5.4 nm, depth RMS 0.58 nm,
+        # centre RMS 4.6 nm, |ΔH/D| 0.0014, orientation 0.89°, |Δdx|, |Δdy| 7.3 nm
+        assert _rms(dd) <= 0.010, dd
+        assert _rms(dz) <= 1.0, dz
+        assert _rms(dc) <= 0.008, dc
+        assert np.all(np.abs(t["hd_ratio"] - [i["hd_ratio"] for i in tr]) < 0.0025)
+        # diag 1 (within ±45° of +x) and diag 2 each against the truth: worst 19 nm (seed 11); a swap of
+        # the two would be off by |d1 - d2|, up to 85 nm on seed 12
+        assert np.abs(t["diag1_um"] - [i["diag1_um"] for i in tr]).max() < 0.03
+        assert np.abs(t["diag2_um"] - [i["diag2_um"] for i in tr]).max() < 0.03
         do = (t["orientation_deg"] - [i["orientation_deg"] for i in tr] + 45) % 90 - 45
-        assert np.all(np.abs(do) < 2.0)
+        assert np.all(np.abs(do) < 1.5)
         # positional errors: truth scatter after the same rigid registration, within 15 nm
         from markcal.stages.register import rigid_fit
         nom = np.array([[(i["col"] - 1) * 8.0, (i["row"] - 1) * 8.0] for i in tr])
         txy = np.array([[i["x_um"], i["y_um"]] for i in tr])
         tf = rigid_fit(txy, nom)
         true_d = tf.apply(txy) - nom
-        assert np.max(np.abs(t["dx_um"] - true_d[:, 0])) < 0.02
-        assert np.max(np.abs(t["dy_um"] - true_d[:, 1])) < 0.02
+        assert np.max(np.abs(t["dx_um"] - true_d[:, 0])) < 0.012
+        assert np.max(np.abs(t["dy_um"] - true_d[:, 1])) < 0.012
 
 
 @pytest.mark.parametrize("seed,nominal", [(13, 2.0), (14, 3.0)])
 def test_afm_curved_facets_against_truth(tmp_path, seed, nominal):
-    """Convex facets (facet bulge 0.05: mid-facet 5 % of the depth above the plane) still meet
-    the issue's goals: diameter RMS <= 20 nm, depth RMS <= 2 nm, centre RMS <= 15 nm."""
+    """Convex facets (facet bulge 0.05: mid-facet 5 % of the depth above the plane) are measured as
+    well as flat ones. Measured worst (seeds 13, 14): diameter RMS 2.8 nm, depth RMS 0.30 nm, centre
+    RMS 2.9 nm."""
     r = render_afm(seed, AfmOptions(nominal_um=nominal, facet_bulge=0.05, **SMALL_AFM))
     path, spec = _write(str(tmp_path), r)
     res = run_indents([path], read_array_spec(spec))
     t = res.indents
     assert len(t["id"]) == 9 and res.summary["n_missing"] == 0
     tr = _match(t, r.truth)
-    assert _rms(t["diameter_um"] - [i["diameter_um"] for i in tr]) <= 0.020
-    assert _rms(t["depth_nm"] - [i["depth_nm"] for i in tr]) <= 2.0
-    assert _rms(np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])) <= 0.015
+    assert _rms(t["diameter_um"] - _true_diameter(tr)) <= 0.005
+    for k in ("diag1_um", "diag2_um"):                          # measured worst 7.4 nm
+        assert np.abs(t[k] - [i[k] for i in tr]).max() < 0.012, k
+    assert _rms(t["depth_nm"] - [i["depth_nm"] for i in tr]) <= 0.5
+    assert _rms(np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])) <= 0.005
 
 
 def test_levelling_removes_tilt_bow_offsets():
@@ -166,8 +183,9 @@ def test_ibw_single_imprint_cli_no_options(tmp_path):
     from markcal.reports.files import read_csv
     t = read_csv(os.path.join(out, "indents.csv"))
     tr = r.truth["imprints"][0]
-    assert abs(t["diameter_um"][0] - tr["diameter_um"]) < 0.02
-    assert abs(t["depth_nm"][0] - tr["depth_nm"]) < 2.0
+    # measured: diameter -1.4 nm, depth +0.031 nm
+    assert abs(t["diameter_um"][0] - _true_diameter([tr])[0]) < 0.003
+    assert abs(t["depth_nm"][0] - tr["depth_nm"]) < 0.06
     assert np.isnan(t["row"][0]) and np.isnan(t["dx_um"][0])              # no spec: empty row/col/dx/dy
 
 
@@ -179,15 +197,15 @@ def test_om_accuracy_against_truth(tmp_path):
     assert len(t["id"]) == 6 and res.summary["n_missing"] == 0
     tr = _match(t, r.truth)
     dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
-    assert _rms(dc) <= 0.020
-    assert np.all(np.abs(t["diameter_um"] - [i["diameter_um"] for i in tr]) <= 0.1)
+    assert _rms(dc) <= 0.008                                                 # measured 4.5 nm
+    assert np.all(np.abs(t["diameter_um"] - _true_diameter(tr)) <= 0.09)    # measured worst 56 nm
     assert np.all(np.isnan(t["depth_nm"]))
 
 
 @pytest.mark.parametrize("seed,bits", [(32, 8), (33, 16)])
 def test_om_1um_diameter_against_truth(tmp_path, seed, bits):
-    """1 µm marks (10 px, barely resolved at NA 0.8): every diameter within the issue's +-0.1 µm,
-    centre RMS <= 20 nm; the out-of-focus dust of the render is not reported as an imprint."""
+    """1 µm marks (10 px, barely resolved at NA 0.8); the out-of-focus dust of the render is not
+    reported as an imprint. Measured worst (seeds 32, 33): |Δd| 38 nm, centre RMS 3.0 nm."""
     r = render_om(seed, OmOptions(rows=4, cols=4, pitch_um=6.0, size_px=320, nominal_um=1.0, bits=bits))
     path, spec = _write(str(tmp_path), r)
     res = run_indents([path], read_array_spec(spec))
@@ -196,9 +214,9 @@ def test_om_1um_diameter_against_truth(tmp_path, seed, bits):
     tr = _match(t, r.truth)
     assert len({i["id"] for i in tr}) == 16
     dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
-    assert _rms(dc) <= 0.020
-    err = t["diameter_um"] - [i["diameter_um"] for i in tr]
-    assert np.all(np.abs(err) <= 0.1)
+    assert _rms(dc) <= 0.005
+    err = t["diameter_um"] - _true_diameter(tr)
+    assert np.all(np.abs(err) <= 0.06)
     # without spec (no size filter) the dust must not come back as an imprint either
     res2 = run_indents([path], None)
     assert len(res2.indents["x_um"]) == 16
@@ -310,3 +328,34 @@ def test_array_spec_strict(tmp_path):
         fh.write(array_toml(5, 4, 8.0, 3.0))
     s = read_array_spec(p)
     assert (s.rows, s.cols, s.pitch_um, s.nominal_diameter_um) == (5, 4, 8.0, 3.0)
+
+
+def test_afm_window_recentres_on_an_off_centre_candidate():
+    """The facet fit re-centres its window on the imprint: a detector candidate 30-45 % of the radius
+    off centre gives the same imprint. Measured (seed 9, 3 µm, offsets 0-45 %): centre within 2.0 nm,
+    diameter 2.2 nm, depth 0.26 nm; one window pass alone is off by 40 nm and 13 nm in depth at 30 %."""
+    from markcal.stages.indent_afm import measure_afm
+    r = render_afm(9, AfmOptions(rows=1, cols=1, size_px=256, field_um=10.0, nominal_um=3.0))
+    lv = level_afm(r.data.astype(float), r.pixel_um)
+    tr, px = r.truth["imprints"][0], r.pixel_um
+    rad = tr["diameter_um"] / 2 / px
+    for off in (0.3, 0.45):
+        imp = measure_afm(lv.z_nm, px, tr["y_um"] / px + off * rad, tr["x_um"] / px - off * rad, 0.8 * rad,
+                          lv.noise_nm, lv.mask, lv.scars)
+        assert np.hypot(imp.x_um - tr["x_um"], imp.y_um - tr["y_um"]) < 0.004, off
+        assert abs(imp.diameter_um - _true_diameter([tr])[0]) < 0.004, off
+        assert abs(imp.depth_nm - tr["depth_nm"]) < 0.5, off
+
+
+def test_om_small_dots_on_the_sub_pixel_grid(tmp_path):
+    """1 µm marks (radius under 8 px) are modelled on a 2 x 2 sub-pixel grid centred in each pixel.
+    Measured (seed 34): centre RMS 3.1 nm, max 5.3 nm, |Δd| 9.5 nm; a grid shifted by a quarter pixel
+    puts every centre 20-27 nm off in y."""
+    r = render_om(34, OmOptions(rows=2, cols=2, pitch_um=6.0, size_px=160, nominal_um=1.0, bits=16))
+    path, spec = _write(str(tmp_path), r)
+    t = run_indents([path], read_array_spec(spec)).indents
+    assert len(t["id"]) == 4
+    tr = _match(t, r.truth)
+    dc = np.hypot(t["x_um"] - [i["x_um"] for i in tr], t["y_um"] - [i["y_um"] for i in tr])
+    assert _rms(dc) <= 0.006 and dc.max() <= 0.009
+    assert np.abs(t["diameter_um"] - _true_diameter(tr)).max() <= 0.015

@@ -1,4 +1,9 @@
-"""pmcal flow: model, GA, least squares, command generation against the renderer's truth; bad input."""
+"""pmcal flow: model, GA, least squares, command generation against the renderer's truth; bad input.
+
+The truth side (``fixtures.pm_session.landing_errors``, ``tip_om``) is the fixture's own physics,
+not ``stages/pm_model.py``. Limits are about 1.5-2x the worst measured on these fixed seeds (written
+beside each); the goals (landing RMS 0.05 µm, max 0.10 µm, depth 5 nm) stay in the benchmark.
+"""
 from __future__ import annotations
 
 import json
@@ -8,7 +13,8 @@ import shutil
 import numpy as np
 import pytest
 
-from markcal.fixtures.pm_session import landing_errors, render_pm_session, sample_true_machine, session_data
+from markcal.fixtures.pm_session import (landing_errors, render_pm_session, sample_true_machine, session_data,
+                                        truth_dict)
 from markcal.pipeline.cli import main
 from markcal.reports.files import read_csv, write_csv
 from markcal.stages.pm_fit import fit_lsq, model_from_theta, theta_from_model
@@ -69,23 +75,48 @@ def test_ga_deterministic_monotone_and_accurate():
     assert np.array_equal(a.theta, b.theta) and np.array_equal(a.best_f, b.best_f)
     assert len(a.best_f) == 100 and a.n_evals == 60 + 99 * 58
     assert np.all(np.diff(a.best_f) <= 0)  # elitism
-    assert a.best_f[-1] < 0.2 * a.best_f[0]
+    assert a.best_f[-1] < 0.2 * a.best_f[0]                               # measured 0.134
     xy = np.random.default_rng(4).uniform(-20000, 20000, (100, 2))
     lat, _ = landing_errors(s.model, xy, 0.5, command_for_targets(model_from_theta(a.theta), xy, 0.5))
-    assert np.sqrt(np.mean(lat ** 2)) < 0.05 and lat.max() < 0.10
+    assert np.sqrt(np.mean(lat ** 2)) < 0.009 and lat.max() < 0.020        # measured 0.0048 / 0.0114 µm
 
 
 def test_lsq_parameters_within_goals():
     s = render_pm_session(9)
     r = fit_lsq(session_data(s))
-    est, tru = model_to_dict(r.model), model_to_dict(s.model)
-    for k in ("nonorth_xy_urad", "nonorth_xz_urad", "nonorth_yz_urad", "plane_tilt_x_urad", "plane_tilt_y_urad"):
-        assert abs(est[k] - tru[k]) < 2.0, k
+    est, tru = model_to_dict(r.model), truth_dict(s.model)      # truth from the fixture's own conversion
+    # measured (seed 9): non-orthogonality 0.27 / 0.35 / 0.73 µrad, plane tilt 0.12 / 0.05 µrad,
+    # scale 0.12 / 0.014 / 0.068 ppm, pose rotation 0.35 µrad
+    for k in ("nonorth_xy_urad", "nonorth_xz_urad", "nonorth_yz_urad"):
+        assert abs(est[k] - tru[k]) < 1.2, k
+    for k in ("plane_tilt_x_urad", "plane_tilt_y_urad"):
+        assert abs(est[k] - tru[k]) < 0.25, k
     for k in ("scale_x_ppm", "scale_y_ppm", "scale_z_ppm"):
-        assert abs(est[k] - tru[k]) < 5.0, k
-    assert np.linalg.norm(np.subtract(est["rotvec_urad"], tru["rotvec_urad"])) < 10.0
+        assert abs(est[k] - tru[k]) < 0.2, k
+    assert np.linalg.norm(np.subtract(est["rotvec_urad"], tru["rotvec_urad"])) < 0.6
+    # straightness bows, pair by pair (labels as the truth's): measured worst 0.045 µm (y(z))
+    assert est["straightness_pairs"] == tru["straightness_pairs"] == ["y(x)", "z(x)", "x(y)", "z(y)", "x(z)", "y(z)"]
+    assert np.abs(np.subtract(est["straightness_um"], tru["straightness_um"])).max() < 0.08
     # the true machine has ~100 µrad non-orthogonality: the fit must have found it, not ideal axes
     assert np.max(np.abs(nonorthogonality_rad(s.model.a_axes))) > 2e-5
+
+
+def test_lsq_exact_on_noise_free_session_with_turned_axes():
+    """Noise-free session of a machine whose stage triad is turned 0.3 rad in the PM frame, with scale
+    errors of hundreds of ppm: the model is exact, so the fit must be (measured: < 1e-5 ppm, µrad).
+    Scaling the rows of the axes matrix instead of its columns is invisible on near-identity axes and
+    off by 53 ppm here."""
+    from scipy.spatial.transform import Rotation
+    from markcal.fixtures.pm_session import SessionOptions
+    base = sample_true_machine(np.random.default_rng([3, 4]))
+    q = Rotation.from_rotvec([0.02, -0.03, 0.3]).as_matrix()
+    m = PMModel(q @ base.a_axes, np.array([3e-4, -2e-4, 1e-4]), base.k_um, base.o_um, base.r_pose, base.t_um,
+                base.plane)
+    s = render_pm_session(5, SessionOptions(noise_um=1e-9, probe_noise_um=1e-9, drift_noise_um=1e-9), model=m)
+    est, tru = model_to_dict(fit_lsq(session_data(s)).model), truth_dict(m)
+    for k in ("scale_x_ppm", "scale_y_ppm", "scale_z_ppm", "nonorth_xy_urad", "nonorth_xz_urad", "nonorth_yz_urad",
+              "plane_tilt_x_urad", "plane_tilt_y_urad"):
+        assert abs(est[k] - tru[k]) < 0.01, k
 
 
 def test_flow_outputs_and_truth(calibrated):
@@ -95,8 +126,13 @@ def test_flow_outputs_and_truth(calibrated):
               "plane_b", "plane_c_um", "normal", "E_ortho", "E_pose", "E_flat", "E_dyn", "F"):
         assert k in cal, k
     assert cal["method"] == "ga+lsq" and s["method"] == "ga+lsq"
-    assert s["landing_rms_um"] <= 0.05 and s["landing_max_um"] <= 0.10 and s["depth_err_max_um"] <= 0.005
-    assert abs(s["err_nonorth_xy_urad"]) < 2 and abs(s["err_scale_x_ppm"]) < 5 and s["err_pose_rot_urad"] < 10
+    # measured (seed 7): landing RMS 0.0038, max 0.0069, depth 0.0011 µm; errors: non-orthogonality
+    # 0.044 / 0.30 / 0.039 µrad, scale 0.14 / 0.057 / 0.34 ppm, tilt 0.003 / 0.078 µrad, pose 0.24 µrad
+    assert s["landing_rms_um"] <= 0.007 and s["landing_max_um"] <= 0.012 and s["depth_err_max_um"] <= 0.002
+    assert abs(s["err_nonorth_xy_urad"]) < 0.09 and abs(s["err_scale_x_ppm"]) < 0.25 and s["err_pose_rot_urad"] < 0.4
+    for k, lim in (("nonorth_xz_urad", 0.5), ("nonorth_yz_urad", 0.08), ("scale_y_ppm", 0.1), ("scale_z_ppm", 0.55),
+                   ("plane_tilt_x_urad", 0.01), ("plane_tilt_y_urad", 0.13)):
+        assert abs(s["err_" + k]) < lim, k
     m = read_csv(calibrated / "methods.csv")
     assert list(m["method"]) == ["ga", "lsq", "ga+lsq"]
     assert len(read_csv(calibrated / "ga_convergence.csv")["best_F"]) == 100
@@ -114,8 +150,8 @@ def test_command_cli_lands_on_true_machine(session, calibrated, tmp_path):
     c = read_csv(out)
     assert list(c) == ["x_um", "y_um", "x_cmd_um", "y_cmd_um", "z_cmd_um"]
     lat, dep = landing_errors(truth, xy, 0.8, np.column_stack([c["x_cmd_um"], c["y_cmd_um"], c["z_cmd_um"]]))
-    assert np.sqrt(np.mean(lat ** 2)) <= 0.05 and lat.max() <= 0.10
-    assert np.abs(dep).max() <= 0.005
+    assert np.sqrt(np.mean(lat ** 2)) <= 0.007 and lat.max() <= 0.012      # measured 0.0037 / 0.0065 µm
+    assert np.abs(dep).max() <= 0.002                                      # measured 0.00095 µm
 
 
 def _bad(capsys, argv):
@@ -187,7 +223,7 @@ def test_small_probe_grid_warns_but_runs(session, tmp_path):
     assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report", "--quiet"]) == 0
     s = json.load(open(out / "summary.json"))
     assert s["n_warnings"] >= 1 and s["n_probe_points"] == 9 and s["method"] == "lsq"
-    assert s["landing_rms_um"] <= 0.05
+    assert s["landing_rms_um"] <= 0.007                                    # measured 0.0038 µm
 
 
 # ----------------------------------------------------------------------------- om/ + marks.csv variant
@@ -206,7 +242,7 @@ def test_om_images_measured_to_nanometres():
     from markcal.fixtures.indent_maps import tiff_bytes
     from markcal.fixtures.pm_session import SessionOptions, render_om_marks
     from markcal.pipeline.flows.pmcal import read_om_marks
-    from markcal.stages.pm_model import tip_om
+    from markcal.fixtures.pm_session import tip_om
     import tempfile
 
     s = render_pm_session(7, SessionOptions(pose_grid=4))
@@ -221,7 +257,7 @@ def test_om_images_measured_to_nanometres():
     true = tip_om(s.model, np.column_stack([s.pose["x_pm_um"], s.pose["y_pm_um"], s.pose["z_pm_um"]]))
     err = x_om[:, :2] - true[:, :2]
     # OM centring noise ~3 nm (indents flow goal); the shared-optics fit gives ~1.5 nm here
-    assert np.sqrt(np.mean(err ** 2)) < 0.005 and np.abs(err).max() < 0.010
+    assert np.sqrt(np.mean(err ** 2)) < 0.0025 and np.abs(err).max() < 0.005     # measured 0.0014 / 0.0030 µm
 
 
 def test_om_session_calibrates_like_pose_csv(om_session, tmp_path):
@@ -232,9 +268,10 @@ def test_om_session_calibrates_like_pose_csv(om_session, tmp_path):
     assert main(["pmcal", str(om_session), "--out", str(out), "--no-report", "--quiet"]) == 0
     s = json.load(open(out / "summary.json"))
     assert s["n_pose_pairs"] == 16 and s["pose_source"] == "marks.csv"
-    assert s["err_pose_rot_urad"] < 10
-    assert s["landing_rms_um"] <= 0.05 and s["landing_max_um"] <= 0.10 and s["depth_err_max_um"] <= 0.005
-    assert abs(s["err_nonorth_xy_urad"]) < 2 and abs(s["err_scale_x_ppm"]) < 5
+    # measured: pose 0.57 µrad, landing RMS 0.0051, max 0.0087, depth 0.0036 µm, non-orth. 0.36 µrad, scale 0.03 ppm
+    assert s["err_pose_rot_urad"] < 1.0
+    assert s["landing_rms_um"] <= 0.009 and s["landing_max_um"] <= 0.015 and s["depth_err_max_um"] <= 0.006
+    assert abs(s["err_nonorth_xy_urad"]) < 0.6 and abs(s["err_scale_x_ppm"]) < 0.06
 
 
 def test_om_session_drops_unfound_mark_and_needs_three(om_session, tmp_path, capsys):
@@ -246,7 +283,7 @@ def test_om_session_drops_unfound_mark_and_needs_three(om_session, tmp_path, cap
     out = tmp_path / "o"
     assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report", "--quiet"]) == 0
     s = json.load(open(out / "summary.json"))
-    assert s["n_pose_pairs"] == 15 and s["n_warnings"] >= 1 and s["landing_rms_um"] <= 0.05
+    assert s["n_pose_pairs"] == 15 and s["n_warnings"] >= 1 and s["landing_rms_um"] <= 0.009   # measured 0.0048
     capsys.readouterr()
     assert main(["pmcal", str(d), "--out", str(out), "--method", "lsq", "--no-report"]) == 0
     assert "marks.csv line 7 (mark_005.tif): no mark found; pair dropped" in capsys.readouterr().err

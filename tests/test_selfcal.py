@@ -47,10 +47,35 @@ def test_accuracy_at_paper_noise_levels(noise_xy_um, noise_theta_deg):
         sdt.append(et.std(ddof=1))
         # the estimate is as good as the covariance bound says (not worse than 1.3 x)
         bound = np.sqrt(np.mean(np.r_[sol.predicted_sd_gx_um.ravel(), sol.predicted_sd_gy_um.ravel()] ** 2))
-        assert 0.7 < np.sqrt(np.mean([ex.var(), ey.var()])) / bound < 1.3
+        assert 0.85 < np.sqrt(np.mean([ex.var(), ey.var()])) / bound < 1.3     # measured 1.055-1.129
         assert sol.sigma_xy_um == pytest.approx(noise_xy_um, rel=0.2)
+        # limits at ~1.5x the worst measured on seeds 11-13 (both noise levels, in units of the noise):
+        # max |E_G| 3.27 x noise_xy, max |E_Gθ| 2.69 x noise_θ, |ΔO| 1.71 µrad per µm of noise
+        # (0.034 µrad at 0.02 µm), |ΔR| 1.03 ppm per µm (0.0207 ppm): O, R limits in µrad, ppm per µm
+        assert max(np.abs(ex).max(), np.abs(ey).max()) <= 5.0 * noise_xy_um
+        assert np.abs(et).max() <= 4.0 * noise_theta_deg
+        assert abs(sol.nonorthogonality_urad - r.truth["nonorthogonality_urad"]) <= 2.6 * noise_xy_um
+        assert abs(sol.scale_difference_ppm - r.truth["scale_difference_ppm"]) <= 1.6 * noise_xy_um
     assert max(sds) <= 1.1 * noise_xy_um and np.mean(sds) <= noise_xy_um
     assert max(sdt) <= 1.1 * noise_theta_deg and np.mean(sdt) <= noise_theta_deg
+
+
+@pytest.mark.parametrize("seed,noise_xy_um,noise_theta_deg", [(21, 0.02, 0.0001), (22, 0.05, 0.00005)])
+def test_second_weighted_pass_when_noise_levels_differ(seed, noise_xy_um, noise_theta_deg):
+    """Design claim: the second pass, weighted by the estimated noise of each group, is what makes the
+    reported bound right when the xy and θ noise levels differ (here 0.02 µm vs 0.0017 mrad, 12x).
+
+    Measured (seeds 21, 22): RMS predicted sd of Gθ 0.97-1.42 x noise_θ with the weighted pass,
+    10-55 x with unit weights only; the estimate itself changes by under 3 % (the φ and the eq. 9 rows
+    are all the groups share), so the claim is tested on the bound and the noise estimate."""
+    r = render_selfcal(seed, SelfcalOptions(noise_xy_um=noise_xy_um, noise_theta_deg=noise_theta_deg))
+    sol = solve_selfcal(r.setup, r.grid, r.angle)
+    _, _, et = _errors(r, sol)
+    pred = np.sqrt(np.mean(sol.predicted_sd_gtheta_deg ** 2))
+    assert 0.6 * noise_theta_deg < pred < 2.5 * noise_theta_deg
+    assert np.sqrt(np.mean(et ** 2)) < 2.0 * pred                    # the bound covers the realised error
+    assert sol.sigma_theta_deg == pytest.approx(noise_theta_deg, rel=0.2)
+    assert sol.sigma_xy_um == pytest.approx(noise_xy_um, rel=0.2)
 
 
 def test_missing_marks_are_skipped_and_reported():
@@ -58,14 +83,14 @@ def test_missing_marks_are_skipped_and_reported():
     sol = solve_selfcal(r.setup, r.grid, r.angle)
     ex, ey, _ = _errors(r, sol)
     assert sum("not measured" in n for n in sol.notes) >= 1
-    assert max(ex.std(ddof=1), ey.std(ddof=1)) <= 0.025      # 6 of 352 readings fewer: still near the bound
+    assert max(ex.std(ddof=1), ey.std(ddof=1)) <= 0.025      # 6 of 352 readings fewer; measured 0.0180
 
 
 def test_xy_only_session():
     r = render_selfcal(15, SelfcalOptions())
     sol = solve_selfcal(r.setup, r.grid, None)
     ex, ey, _ = _errors(r, sol)
-    assert max(ex.std(ddof=1), ey.std(ddof=1)) <= 0.022
+    assert max(ex.std(ddof=1), ey.std(ddof=1)) <= 0.022      # measured 0.0182 (the goal is the noise, 0.02)
     assert sol.gtheta_deg.size == 0
 
 
@@ -109,7 +134,7 @@ def test_cli_outputs(session, tmp_path):
     for key in ("nonorthogonality_urad", "scale_difference_ppm", "view0_rotation_deg", "view3_offset_x_um",
                 "residual_rms_xy_um", "condition_1norm", "predicted_sd_gxy_um", "error_sd_gx_um"):
         assert key in s
-    assert s["nonorthogonality_urad"] == pytest.approx(truth["nonorthogonality_urad"], abs=0.1)
+    assert s["nonorthogonality_urad"] == pytest.approx(truth["nonorthogonality_urad"], abs=0.06)   # measured 0.038
     html = open(os.path.join(out, "report.html")).read()
     assert "Tables 1–2" in html and html.count("data:image/png;base64,") == 3
 
