@@ -208,8 +208,11 @@ def run_job(job: dict) -> dict:
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
         start_outputs(job["out_dir"])     # a failure now must not leave an old summary vouching
+        index = os.path.join(os.path.dirname(job["out_dir"].rstrip(os.sep)), *[".."] * job["name"].count("/"),
+                             "index.html")
         result, _ = run_and_write(job["flow"], job["input"], job["out_dir"], spec_path=job.get("spec"),
-                                  options=job["options"], tolerances=job["tolerances"])
+                                  options=job["options"], tolerances=job["tolerances"],
+                                  context={"batch_index": os.path.relpath(index, job["out_dir"])})
         summary = result.summary
         return make_record(job, summary, runtime_s=time.perf_counter() - t0)
     except Exception as exc:  # noqa: BLE001  failure isolation: every error becomes a one-line reason

@@ -160,6 +160,8 @@ def verdict_banner(summary: dict) -> str:
         prov.append(f"spec {esc(summary['spec'])} (SHA-256 {esc(str(summary.get('spec_sha256', ''))[:16])}…)")
     if summary.get("command"):
         prov.append(f"command <code>{esc(summary['command'])}</code>")
+    if summary.get("batch_index"):
+        prov.append(f'<a href="{esc(summary["batch_index"])}">back to the batch index</a>')
     return (f'<div class="banner {cls}" id="verdict"><span class="big">{esc(status.upper())}</span>{checks}</div>'
             f'<div class="prov">{" · ".join(prov)}</div>')
 

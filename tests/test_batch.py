@@ -114,6 +114,7 @@ def test_outputs_as_single_command(mix, ran, tmp_path):
     b = json.load(open(os.path.join(out, "servo", "trace01", "summary.json")))
     for k in ("runtime_s", "date_utc", "command"):          # when and how it ran: the rest is identical
         a.pop(k), b.pop(k)
+    assert b.pop("batch_index") == "../../index.html"        # the batch's report links back to its index
     assert a == b
 
 
