@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+                                  table)
 from markcal.stages.galvo_fit import KINDS, PARAM_NAMES
 
 __all__ = ["grid_report_html"]
@@ -100,6 +101,8 @@ def _deviation_figure(result) -> str:
     q = ax.quiver(x, y, dx, dy, mag, angles="xy", scale_units="xy", scale=1.0 / k, cmap="viridis", width=0.004)
     cb = fig.colorbar(q, ax=ax, shrink=0.85, pad=0.02)
     cb.set_label("|δ| (mm)")
+    key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
+    arrow_key(ax, q, key, f"{key:g} mm (magnified {k:g}×)")
     cv = np.hypot(f["cv_dx_mm"], f["cv_dy_mm"])
     worst = np.argsort(-cv)[:3]
     ax.scatter(x[worst], y[worst], s=90, facecolors="none", edgecolors="red", label="largest CV error")

@@ -11,7 +11,7 @@ import io
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner"]
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner", "arrow_key"]
 
 DPI = 100
 
@@ -92,6 +92,20 @@ def new_figure(w_in: float, h_in: float):
     fig = Figure(figsize=(w_in, h_in), dpi=DPI)
     FigureCanvasAgg(fig)
     return fig
+
+
+def arrow_key(ax, q, length: float, label: str) -> None:
+    """Draw the key arrow of quiver ``q`` inside ``ax`` (lower right, on a white box).
+
+    ``length`` is in the units of the arrows as passed to ``quiver``; ``label`` says what it means
+    in real units. Inside the axes, the key survives the tight cropping of :func:`png_b64`.
+    """
+    from matplotlib.patches import Rectangle
+    ax.add_patch(Rectangle((0.60, 0.01), 0.385, 0.08, transform=ax.transAxes, facecolor="white", edgecolor="0.55",
+                           alpha=0.92, zorder=5))
+    key = ax.quiverkey(q, 0.90, 0.05, length, label, labelpos="W", coordinates="axes", color="k",
+                       fontproperties={"size": 8})
+    key.set_zorder(6)
 
 
 def png_b64(fig: Figure) -> str:

@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.pipeline.flows.pmcal import COMPARED, PmcalResult
-from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+                                  table)
 from markcal.stages.pm_model import model_to_dict
 
 __all__ = ["pmcal_report_html", "DATA_FILES"]
@@ -45,7 +46,9 @@ def _residuals(result: PmcalResult) -> str:
     ax.set_title("axis trajectories")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(132)
-    ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0], rp[:, 1], color="#c0392b")
+    q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0], rp[:, 1], color="#c0392b")
+    key_um = nice_number(0.6 * max(float(np.hypot(rp[:, 0], rp[:, 1]).max()), 1e-12))
+    arrow_key(ax, q, key_um, f"{key_um * 1e3:g} nm")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_title("pose pairs: XY residual")

@@ -17,7 +17,8 @@ from matplotlib.colors import LogNorm
 from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
-from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+                                  table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
 
@@ -132,7 +133,7 @@ def _quiver_figure(result) -> str:
     cb = fig.colorbar(q, ax=ax, shrink=0.85, pad=0.02)
     cb.set_label("|δ| (mm)")
     key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
-    ax.quiverkey(q, 0.82, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
+    arrow_key(ax, q, key, f"{key:g} mm (magnified {k:g}×)")
     if result.missing_ids:
         _, _, q_all = nominal_grid(spec)
         miss = q_all[np.asarray(result.missing_ids, int)]
@@ -282,7 +283,7 @@ def _field_figure(result) -> str:
     q = ax.quiver(xy[pick, 0], xy[pick, 1], d[pick, 0], d[pick, 1], angles="xy", scale_units="xy",
                   scale=1.0 / k, color="white", edgecolor="black", linewidth=0.3, width=0.004)
     key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
-    ax.quiverkey(q, 0.80, 1.03, key, f"{key:g} mm", labelpos="E", coordinates="axes", color="k")
+    arrow_key(ax, q, key, f"{key:g} mm (magnified {k:g}×)")
     ax.set_title("command offset K − Q (mm)", fontsize=10, loc="left", pad=10)
     ax.set_aspect("equal")
     ax.set_xlabel("wanted x (mm)")

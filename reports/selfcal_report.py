@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+                                  table)
 from markcal.stages.selfcal import site_xy_mm
 
 __all__ = ["selfcal_report_html", "DATA_FILES"]
@@ -35,8 +36,10 @@ def _quiver(result) -> str:
     fig = new_figure(6.4, 6.0)
     ax = fig.add_subplot(111)
     ax.plot(x, y, ".", color="#999", ms=3)
-    ax.quiver(x, y, sol.gx_um * scale_mm_per_um, sol.gy_um * scale_mm_per_um, angles="xy",
-              scale_units="xy", scale=1, color="#c0392b", width=0.004)
+    q = ax.quiver(x, y, sol.gx_um * scale_mm_per_um, sol.gy_um * scale_mm_per_um, angles="xy",
+                  scale_units="xy", scale=1, color="#c0392b", width=0.004)
+    key_um = nice_number(0.6 * max(float(mag.max()), 1e-12))
+    arrow_key(ax, q, key_um * scale_mm_per_um, f"{key_um:g} µm")
     if result.truth:
         N = result.setup.n
         tx = np.asarray(result.truth["gx_um"]).reshape(N, N)

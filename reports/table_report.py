@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import arrow_key, esc, img, new_figure, nice_number, num, page, png_b64, table
 
 __all__ = ["table_report_html", "structure_rows"]
 
@@ -16,8 +16,10 @@ def _figure(t) -> str:
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(np.hypot(t.u, t.v).max())
     k = nice_number(0.8 * pitch / vmax) if vmax > 0 else 1.0
-    ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
-              angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
+    q = ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
+                  angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
+    key = nice_number(0.6 * vmax) if vmax > 0 else 1.0
+    arrow_key(ax, q, key * k, f"{key:g} {t.unit}")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
