@@ -15,7 +15,6 @@ from __future__ import annotations
 import os
 import time
 from dataclasses import dataclass, field
-from typing import Callable
 
 from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext

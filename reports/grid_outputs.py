@@ -8,11 +8,11 @@ with the region where it is valid (the whole lens field).
 """
 from __future__ import annotations
 
-
 import numpy as np
 
 from markcal.reports.files import OutputFolder
 from markcal.reports.grid_report import grid_report_html
+from markcal.reports.scan_outputs import deviations_table
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "line", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
                     "x_input_mm", "y_input_mm", "fit_dx_mm", "fit_dy_mm", "cv_dx_mm", "cv_dy_mm")
@@ -46,17 +46,16 @@ def write_grid_outputs(result, out_dir, report: bool = True) -> dict:
     out = OutputFolder(out_dir)
     f = result.fiducials
     out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
-    out.csv("deviations.csv", {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
-                                    "dx_mm": f["dx_mm"], "dy_mm": f["dy_mm"], "d_mm": np.hypot(f["dx_mm"], f["dy_mm"])})
+    out.csv("deviations.csv", deviations_table(f))
     xy, dxy = result.grid_xy_mm, result.grid_dxy_mm
     out.csv("correction_grid.csv", {"x_mm": xy[:, 0], "y_mm": xy[:, 1], "dx_mm": dxy[:, 0], "dy_mm": dxy[:, 1],
-                                         "outside_hull_mm": result.grid_hull_mm,
-                                         "extrapolated": result.extrapolated.astype(int)})
+                                    "outside_hull_mm": result.grid_hull_mm,
+                                    "extrapolated": result.extrapolated.astype(int)})
     # the selfcal flow's layout (command x + G to reach x, µm) so that `markcal export a3200` reads the galvo too
     xs, ys = np.unique(xy[:, 0]), np.unique(xy[:, 1])
     out.csv("stage_error.csv", {"m": np.searchsorted(ys, xy[:, 1]), "n": np.searchsorted(xs, xy[:, 0]),
-                                     "x_mm": xy[:, 0], "y_mm": xy[:, 1],
-                                     "gx_um": 1e3 * dxy[:, 0], "gy_um": 1e3 * dxy[:, 1]})
+                                "x_mm": xy[:, 0], "y_mm": xy[:, 1],
+                                "gx_um": 1e3 * dxy[:, 0], "gy_um": 1e3 * dxy[:, 1]})
     out.json("model.json", model_document(result))
     if report:
         out.text("report.html", grid_report_html(result))

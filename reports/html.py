@@ -108,7 +108,7 @@ def arrow_key(ax, q, length: float, label: str) -> None:
     key.set_zorder(6)
 
 
-def png_b64(fig: Figure) -> str:
+def png_b64(fig) -> str:
     """Render ``fig`` to PNG and return it base64-encoded (the figure is cleared)."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")

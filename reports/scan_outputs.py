@@ -11,6 +11,13 @@ FIDUCIAL_COLUMNS = ("id", "row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_
                     "contrast", "fit_rms", "n_samples", "used_in_registration")
 
 
+def deviations_table(fiducials: dict) -> dict:
+    """deviations.csv of a galvo flow (scan, grid): id, nominal position, δ and |δ| (mm)."""
+    f = fiducials
+    return {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"], "dx_mm": f["dx_mm"],
+            "dy_mm": f["dy_mm"], "d_mm": np.hypot(f["dx_mm"], f["dy_mm"])}
+
+
 def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     """Write every output of a scan flow result into ``out_dir``; summary.json last.
 
@@ -22,9 +29,7 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     out = OutputFolder(out_dir)
     f = result.fiducials
     out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
-    mag = np.hypot(f["dx_mm"], f["dy_mm"])
-    out.csv("deviations.csv", {"id": f["id"], "x_nom_mm": f["x_nom_mm"], "y_nom_mm": f["y_nom_mm"],
-                               "dx_mm": f["dx_mm"], "dy_mm": f["dy_mm"], "d_mm": mag})
+    out.csv("deviations.csv", deviations_table(f))
     out.csv("correction_grid.csv", {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
                                     "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
     out.csv("corrected_targets.csv", result.targets)

@@ -285,7 +285,7 @@ def _overview(res):
 
 def _overlay(res):
     """Every move overlaid: normalised response from the step, and the approach to the target with the band."""
-    tr, s = res.trace, res.summary
+    tr = res.trace
     lg, mv, mc = tr.log, tr.moves, tr.move_cols
     n = min(len(mv.lo), MAX_MOVES_SHOWN)
     fig = new_figure(11, 3.6)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import numpy as np
 from scipy import ndimage
-from scipy.optimize import least_squares
 from scipy.special import expit
 
 from .indent_geometry import Imprint, circle_fit, diagonals

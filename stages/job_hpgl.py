@@ -81,7 +81,7 @@ def read_hpgl(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
         raise MarkcalError("no geometry: no HPGL instructions", source)
     pen_down, absolute, pen = False, True, None
     x = y = 0.0
-    paths, pens, owners = [], [], []        # owners: instruction index of each stroke's first / last PD
+    paths, pens = [], []
     cur = None
     pending = []                            # instruction indices of passive instructions since the last move
     leads, header_end = [], None
