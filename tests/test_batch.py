@@ -163,7 +163,7 @@ def test_exit_0_and_bad_batch(mix, tmp_path, capsys):
     empty.mkdir()
     assert main(["batch", str(empty), "--out", str(tmp_path / "o2")]) == 1
     assert "no inputs found" in capsys.readouterr().err
-    with pytest.raises(MarkcalError):
+    with pytest.raises(MarkcalError, match="missing.toml: no such batch config"):
         batch.read_batch_config(str(tmp_path / "missing.toml"))
 
 

@@ -32,7 +32,7 @@ def test_point_spacing_of_0_2_mm_finds_every_mark(tmp_path):
 def test_too_coarse_says_what_it_saw(tmp_path):
     r = render_scan(6, SMALL, ScanOptions(spacing_mm=0.4, z_convention="height"))
     cloud, _ = save_render(r, str(tmp_path))
-    with pytest.raises(MarkcalError) as exc:
+    with pytest.raises(MarkcalError, match="samples") as exc:
         run_scan(cloud, SMALL)
     msg = str(exc.value)
     assert "0.4" in msg and "samples" in msg and "at least 3" in msg

@@ -84,5 +84,5 @@ def test_model_json_round_trip(tmp_path):
     phi = np.exp(-((xt[:, None, :] - c[None]) ** 2).sum(2) / (2 * s ** 2))
     assert np.allclose(phi @ w + b, m(xt), atol=1e-12)
     p.write_text('{"model": {"centres_mm": [[0, 0]]}}')
-    with pytest.raises(MarkcalError):
+    with pytest.raises(MarkcalError, match="not a markcal RBF model: 'weights_mm'"):
         read_rbf_model(p)

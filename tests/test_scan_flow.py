@@ -3,6 +3,7 @@ import json
 import os
 import subprocess
 import sys
+import tomllib
 
 import numpy as np
 import pytest
@@ -117,6 +118,16 @@ def test_cli_render_and_scan_write_documented_outputs(tmp_path):
     assert grid["x_mm"].max() >= 2 * 10.555555 - 1e-9
     tg = read_csv(out / "corrected_targets.csv")
     assert {"x_cmd_mm", "y_cmd_mm", "alpha_x_deg", "alpha_y_deg", "dfr_mm"} <= set(tg)
+    # mirror angles and focus shift by the paper's eqs. 3-5 written out here (mechanical angle = half the
+    # optical one; the Y mirror's lever is e plus the X mirror's slant range), not by stages/galvo.py
+    plate = tomllib.loads((d / "plate.toml").read_text())
+    d_mm, e_mm = float(plate["galvo"]["d_mm"]), float(plate["galvo"]["e_mm"])
+    x, y = np.asarray(tg["x_cmd_mm"]), np.asarray(tg["y_cmd_mm"])
+    lever = e_mm + np.sqrt(d_mm ** 2 + x ** 2)
+    assert np.allclose(tg["alpha_x_deg"], np.degrees(np.arctan(x / d_mm)) / 2, atol=1e-9)
+    assert np.allclose(tg["alpha_y_deg"], np.degrees(np.arctan(y / lever)) / 2, atol=1e-9)
+    assert np.allclose(tg["dfr_mm"], np.sqrt(lever ** 2 + y ** 2) - (e_mm + d_mm), atol=1e-9)
+    assert np.all(tg["dfr_mm"] >= 0) and np.any(tg["dfr_mm"] > 0.01)     # off-axis marks lie further away
     s = json.loads((out / "summary.json").read_text())
     for k in ("n_expected", "n_detected", "rms_mm", "max_mm", "rms_x_mm", "rms_y_mm", "cv_rmse_mm",
               "n_neurons", "plate_tilt_deg", "runtime_s"):
