@@ -339,6 +339,30 @@ HOLDOUT2 = [
 ]
 
 
+def _area_lists() -> list:
+    """Mutants of the flows' own stages, kept beside their benchmarks: ``benchmarks/mutants_<area>.py``
+    each define ``MUTANTS_<AREA>``, a list of dicts ``{name, file, old, new, tests[, kind, count]}``
+    whose ``tests`` are pytest arguments (a list) or a key of :data:`TESTS`."""
+    out = []
+    for path in sorted(Path(__file__).resolve().parent.glob("mutants_*.py")):
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        mod = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(mod)
+        for d in getattr(mod, path.stem.upper(), []):
+            tests = d["tests"] if isinstance(d["tests"], str) else tuple(d["tests"])
+            out.append(Mutant(d["name"], d.get("kind", "other"), d["file"], d["old"], d["new"], tests,
+                              int(d.get("count", 1))))
+    return out
+
+
+AREAS = _area_lists()
+
+
+def test_args(tests) -> list:
+    """pytest arguments of a mutant's selection (a :data:`TESTS` key or the arguments themselves)."""
+    return list(TESTS[tests]) if isinstance(tests, str) else list(tests)
+
+
 #: survivors that change no behaviour the stage is specified for, with the reason
 EQUIVALENT = {
     "drift-bank-mid-interval": "the dt/2 branch is taken only by the local-level members (λ = 0), whose velocity "
@@ -385,7 +409,7 @@ def run_mutant(m: Mutant, python: str, workdir: str, timeout_s: float) -> tuple:
         json.dump({"module": module_name(m.file), "path": str(REPO / m.file), "source": mutated_source(m)}, fh)
     env = dict(os.environ, **{ENV_KEY: spec, "PYTHONPATH": os.pathsep.join(
         [str(REPO / "benchmarks")] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])})
-    cmd = [python, "-m", "pytest", "-x", "-q", "-rfE", "-p", "mutants", "-p", "no:cacheprovider", *TESTS[m.tests]]
+    cmd = [python, "-m", "pytest", "-x", "-q", "-rfE", "-p", "mutants", "-p", "no:cacheprovider", *test_args(m.tests)]
     t0 = time.perf_counter()
     try:
         r = subprocess.run(cmd, cwd=REPO, env=env, capture_output=True, text=True, timeout=timeout_s)
@@ -404,12 +428,12 @@ def baseline(python: str, keys, jobs: int) -> None:
     """Every selection must pass with an unchanged module loaded through the plugin (a null mutant),
     or the score means nothing: this checks the tests and the swapping at once."""
     first = {}
-    for m in MUTANTS + HOLDOUT + HOLDOUT2:
+    for m in MUTANTS + HOLDOUT + HOLDOUT2 + AREAS:
         first.setdefault(m.tests, m)
     nulls = [Mutant(f"null-{k}", "none", first[k].file, "", "", k, count=0) for k in keys]
     with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, jobs)) as pool:
         for m, status, dt, tail in pool.map(lambda m: run_mutant(m, python, work, 900.0), nulls):
-            print(f"baseline {m.tests:8s} {dt:6.1f} s  {tail}", flush=True)
+            print(f"baseline {str(m.tests)[:40]:8s} {dt:6.1f} s  {tail}", flush=True)
             if status != "SURVIVED":
                 raise SystemExit(f"baseline: the {m.tests} tests fail without a mutant ({status}): {tail}")
 
@@ -422,9 +446,10 @@ def main(argv=None) -> int:
     ap.add_argument("--timeout", type=float, default=300.0, help="seconds per mutant (a hang counts as killed)")
     ap.add_argument("--holdout", action="store_true", help="run the held-out mutants instead")
     ap.add_argument("--holdout2", action="store_true", help="run the second held-out list (session 4) instead")
+    ap.add_argument("--areas", action="store_true", help="run the flows' own lists (benchmarks/mutants_*.py) instead")
     ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of each selection")
     args = ap.parse_args(argv)
-    pool = HOLDOUT2 if args.holdout2 else HOLDOUT if args.holdout else MUTANTS
+    pool = AREAS if args.areas else HOLDOUT2 if args.holdout2 else HOLDOUT if args.holdout else MUTANTS
     chosen = [m for m in pool if args.k in m.id]
     for m in chosen:
         mutated_source(m)                     # every edit applies and compiles before anything runs
@@ -435,7 +460,7 @@ def main(argv=None) -> int:
     python = sys.executable
     if not args.no_baseline:
         print("baseline: each test selection passes without a mutant ...", flush=True)
-        baseline(python, sorted({m.tests for m in chosen}), args.jobs)
+        baseline(python, sorted({m.tests for m in chosen}, key=str), args.jobs)
     t0 = time.perf_counter()
     results = []
     with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, args.jobs)) as pool:
