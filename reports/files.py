@@ -43,6 +43,7 @@ LOCK_NAME = ".markcal.lock"
 def check_out_dir(out_dir, inputs=()) -> None:
     """Refuse an output folder that is an existing file, an input itself, or a folder holding an input."""
     from markcal.stages.errors import MarkcalError
+    check_path_length(out_dir)
     out = os.path.realpath(out_dir)
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise MarkcalError("--out names an existing file, not a folder", out_dir)
@@ -51,6 +52,33 @@ def check_out_dir(out_dir, inputs=()) -> None:
         if rp == out or rp.startswith(out.rstrip(os.sep) + os.sep):
             raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
                                "choose another folder", out_dir)
+
+
+def check_out_file(out_path, inputs=()) -> None:
+    """Refuse an output *file* path that names a folder, an input, or lies in a folder that does not exist
+    and cannot be made (checked before any computation)."""
+    from markcal.stages.errors import MarkcalError
+    if os.path.isdir(out_path):
+        raise MarkcalError("--out names a folder; give the table file to write", out_path)
+    rp = os.path.realpath(out_path)
+    for p in inputs:
+        ip = os.path.realpath(p)
+        if rp == ip or ip.startswith(rp.rstrip(os.sep) + os.sep):
+            raise MarkcalError(f"--out would overwrite an input ({p})", out_path)
+    check_path_length(out_path)
+
+
+def check_path_length(path) -> None:
+    """Refuse a path the file system cannot hold (a component over 255 bytes, the whole over 4095)."""
+    from markcal.stages.errors import MarkcalError
+    b = os.fsencode(os.path.abspath(path))
+    name_max = 255
+    if len(b) > 4095:
+        raise MarkcalError(f"path is {len(b)} bytes long; at most 4095", path if len(b) < 300 else b[:120].decode(
+            "utf-8", "replace") + "…")
+    longest = max(b.split(os.fsencode(os.sep)), key=len)
+    if len(longest) > name_max:
+        raise MarkcalError(f"a path component is {len(longest)} bytes long; at most {name_max}", path)
 
 
 def _pid_alive(pid: int) -> bool:
