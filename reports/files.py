@@ -34,7 +34,8 @@ def atomic_write_bytes(path, data: bytes) -> None:
 
 
 def atomic_write_text(path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+    """UTF-8 text; characters UTF-8 cannot hold (a non-UTF-8 file name's bytes) are written as ``\\udcXX``."""
+    atomic_write_bytes(path, text.encode("utf-8", "backslashreplace"))
 
 
 LOCK_NAME = ".markcal.lock"
@@ -148,9 +149,21 @@ class OutputFolder:
 
     def __init__(self, out_dir):
         self.out_dir = os.fspath(out_dir)
+        self.created = not os.path.isdir(self.out_dir)
         self.summary_path = start_outputs(self.out_dir)
         self.lock_path = _take_lock(self.out_dir)
         self.paths = {}
+        _UNFINISHED.append(self)
+
+    def abort(self) -> None:
+        """Remove every file this run wrote (and the folder if this run made it and it is now empty)."""
+        for p in list(self.paths.values()) + [self.lock_path]:
+            if os.path.isfile(p):
+                os.unlink(p)
+        if self.created and os.path.isdir(self.out_dir) and not os.listdir(self.out_dir):
+            os.rmdir(self.out_dir)
+        if self in _UNFINISHED:
+            _UNFINISHED.remove(self)
 
     def _path(self, name: str) -> str:
         p = self.paths[name] = os.path.join(self.out_dir, name)
@@ -179,7 +192,23 @@ class OutputFolder:
         self.paths["summary.json"] = self.summary_path
         if os.path.exists(self.lock_path):
             os.unlink(self.lock_path)
+        if self in _UNFINISHED:
+            _UNFINISHED.remove(self)
         return dict(self.paths)
+
+
+#: output folders of this process that were started and not finished
+_UNFINISHED: list = []
+
+
+def abort_unfinished_outputs() -> None:
+    """After a failure: remove the files of every output folder this process started but did not finish,
+    so a failed run leaves nothing half-written (called by the CLI's error handler)."""
+    for folder in list(_UNFINISHED):
+        try:
+            folder.abort()
+        except OSError:
+            _UNFINISHED.remove(folder)
 
 
 def _fmt(v):

@@ -113,6 +113,7 @@ def _read_pcd(path):
         raise MarkcalError("not a PCD file (no FIELDS header)")
     name = _pick_intensity(fields)
     import open3d as o3d
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)   # no coloured warnings on stderr
     pc = o3d.t.io.read_point_cloud(path)
     if "positions" not in pc.point:
         raise MarkcalError("PCD has no points")

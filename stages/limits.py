@@ -13,7 +13,7 @@ import numpy as np
 
 from .errors import MarkcalError
 
-__all__ = ["MEMORY_BUDGET_B", "max_abs_for", "check_values", "check_budget", "check_text_ends"]
+__all__ = ["MEMORY_BUDGET_B", "max_abs_for", "check_values", "check_budget", "check_text_ends", "check_file_ends"]
 
 #: the most bytes the arrays an input declares may take (``MARKCAL_MEMORY_BUDGET_GB`` overrides)
 MEMORY_BUDGET_B = int(float(os.environ.get("MARKCAL_MEMORY_BUDGET_GB", "4")) * 2 ** 30)
@@ -82,6 +82,12 @@ def check_text_ends(data, path=None) -> None:
     else:
         tail = bytes(data).rstrip(b" \t").decode("ascii", "replace")
     if tail and tail[-1] not in "\r\n\x1a":
-        n = tail.count("\n") + 1
-        raise MarkcalError(f"line {n} has no line end: the file looks truncated inside its last row "
+        raise MarkcalError("the last line has no line end: the file looks truncated inside its last row "
                            "(end the file with a newline if it is whole)", path)
+
+
+def check_file_ends(path) -> None:
+    """:func:`check_text_ends` on the last 4 kB of a file."""
+    with open(path, "rb") as fh:
+        fh.seek(max(0, os.path.getsize(path) - 4096))
+        check_text_ends(fh.read(), path)

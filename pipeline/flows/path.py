@@ -158,6 +158,9 @@ def _read_csv(path) -> PathInput:
             raise MarkcalError(f"row {k + 2}: x_mm, y_mm must be numbers ({r[ix]!r}, {r[iy]!r})", path) from None
         if not np.all(np.isfinite(xy[k])):
             raise MarkcalError(f"row {k + 2} (point {k}): NaN or infinite coordinate", path)
+        if np.abs(xy[k]).max() > max_abs_for("x_mm"):
+            raise MarkcalError(f"row {k + 2} (point {k}): coordinate {np.abs(xy[k]).max():g} mm beyond the "
+                               f"physical limit ±{max_abs_for('x_mm'):g} mm", path)
     job = make_job([("point", p) for p in xy], path)
     return JobFile(job, "csv", ("",) * job.n, {}, (), (header, body))
 
