@@ -13,6 +13,7 @@ import tomllib
 from dataclasses import dataclass, fields, replace
 
 from markcal.stages.errors import MarkcalError
+from markcal.stages.limits import check_text_ends
 from markcal.stages.plate import PlateSpec
 
 
@@ -172,6 +173,8 @@ def read_plate_spec(path) -> PlateSpec:
     path = os.fspath(path)
     if os.path.isfile(path) and os.path.getsize(path) < 4096 and not _read_bytes(path).strip():
         raise MarkcalError("empty plate spec: needs [grid] rows, cols and pitch_mm", path)
+    if os.path.isfile(path):
+        check_text_ends(_read_bytes(path), path)
     c = read_config(path, PLATE_SCHEMA, "plate spec")
     spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"])
     hx, hy = spec.half_extent_mm

@@ -7,6 +7,7 @@ PCD (ASCII, binary or binary_compressed, via Open3D's tensor reader), CSV/TXT/XY
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 
 import numpy as np
@@ -55,7 +56,7 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
         xyz, inten = readers[ext](path)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
-    except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError) as exc:
+    except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError, struct.error) as exc:
         raise MarkcalError(f"cannot read {ext[1:].upper()} file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", path) from None
     xyz = np.asarray(xyz, np.float64) * units_scale
     inten = np.asarray(inten, np.float64).ravel()
@@ -212,7 +213,9 @@ def _read_npy(path):
     with open(path, "rb") as fh:
         try:
             version = np.lib.format.read_magic(fh)
-            shape, fortran, dtype = np.lib.format._read_array_header(fh, version)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read_header(fh)
         except (ValueError, EOFError) as exc:
             raise MarkcalError(f"not an NPY array ({exc})") from None
     if dtype.kind not in "iuf" or dtype.names:
