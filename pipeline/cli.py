@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
 import re
 import sys
@@ -61,9 +62,23 @@ def _report_warnings(caught, quiet: bool) -> None:
         print(f"markcal: warning: {cat}: {msg}" + (f" ({n} times)" if n > 1 else ""), file=sys.stderr)
 
 
+class _LogRecords(logging.Handler):
+    """Collects library log records (tifffile, igor2, …) so they are reported like warnings, once, not raw."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.records = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+
 def main(argv=None) -> int:
     _numba_cache()
     args = build_parser().parse_args(argv)
+    logs = _LogRecords()
+    root = logging.getLogger()
+    root.addHandler(logs)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         for developer_only in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
@@ -71,6 +86,9 @@ def main(argv=None) -> int:
         try:
             return _run(args)
         finally:
+            root.removeHandler(logs)
+            caught = list(caught) + [warnings.WarningMessage(_ANSI.sub("", r.getMessage()), UserWarning,
+                                                             r.pathname, r.lineno) for r in logs.records]
             _report_warnings(caught, bool(getattr(args, "quiet", False)))
 
 
