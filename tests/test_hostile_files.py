@@ -256,3 +256,21 @@ def test_export_from_a_model_with_nan(grid_result, tmp_path):
     o = run(["export", "cor", str(src), "--lens-mm", "110", "--out", str(tmp_path / "t.cor"), "--quiet"], tmp_path)
     assert_refused(o, "model.json")
     assert not (tmp_path / "t.cor").exists()
+
+
+@pytest.mark.parametrize("spread", ["NaN", "1e-300", "-1", "Infinity"])
+def test_export_from_a_scan_model_with_a_broken_spread(tmp_path, spread):
+    src = tmp_path / "cal"
+    src.mkdir()
+    (src / "model.json").write_text('{"model": {"centres_mm": [[0, 0], [10, 0], [0, 10]], '
+                                    '"weights_mm": [[0.001, 0], [0, 0.001], [0.001, 0.001]], "bias_mm": [0, 0], '
+                                    f'"spread_mm": {spread}}}}}')
+    rows = [(r, c, 10.0 * c - 10, 10.0 * r - 10) for r in range(3) for c in range(3)]
+    (src / "fiducials.csv").write_text("row,col,x_nom_mm,y_nom_mm,x_meas_mm,y_meas_mm\n" +
+                                       "".join(f"{r},{c},{x},{y},{x},{y}\n" for r, c, x, y in rows))
+    (src / "summary.json").write_text('{"kind": "calibration"}')
+    o = run(["export", "cor", str(src), "--lens-mm", "70", "--out", str(tmp_path / "t.cor"), "--quiet",
+             "--allow-extrapolation"], tmp_path)
+    assert_refused(o, str(src))
+    assert "model.json" in o.err[0] or "not finite" in o.err[0], o.err
+    assert not (tmp_path / "t.cor").exists()

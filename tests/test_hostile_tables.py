@@ -255,3 +255,29 @@ def test_overlong_paths(tmp_path, kind):
         long_in = str(tmp_path.joinpath(*(["w" * 200] * 22), "t.csv"))
     _refused_nothing_written(["servo", "--trace", long_in, "--out", str(tmp_path / "o"), "--quiet"], tmp_path,
                              tmp_path / "o")
+
+
+def test_drift_out_holding_its_input(drift_csv, tmp_path):
+    d = tmp_path / "d"
+    d.mkdir()
+    shutil.copy(drift_csv, d / "drift.csv")
+    _refused_nothing_written(["drift", str(d / "drift.csv"), "--out", str(d), "--quiet"], tmp_path, d / "nothing",
+                             "folder holding it")
+
+
+def test_drift_out_is_a_file(drift_csv, tmp_path):
+    f = tmp_path / "f.txt"
+    f.write_text("keep")
+    _refused_nothing_written(["drift", str(drift_csv), "--out", str(f), "--quiet"], tmp_path, tmp_path / "nothing",
+                             "existing file")
+    assert f.read_text() == "keep"
+
+
+def test_pmcal_command_out_is_a_folder(pm_session, tmp_path):
+    targets = tmp_path / "t.csv"
+    targets.write_text("x_um,y_um\n0,0\n100,50\n")
+    (tmp_path / "c").mkdir()
+    o = run(["pmcal", "command", str(pm_session / "truth.json"), str(targets), "--depth-um", "1",
+             "--out", str(tmp_path / "c")], tmp_path)
+    assert_refused(o, "folder")
+    assert os.listdir(tmp_path / "c") == []

@@ -116,7 +116,15 @@ def _galvo_table(src: ScanSource, units_per_mm: float, spacing: float, allow_ext
     return s, err
 
 
-def export_table(name: str, folder, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
+def export_table(name: str, folder, **kw) -> tuple:
+    """See :func:`_export_table`; every refusal names the source folder when it names no file."""
+    try:
+        return _export_table(name, folder, **kw)
+    except MarkcalError as exc:
+        raise exc.with_path(folder) from None
+
+
+def _export_table(name: str, folder, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
                  ctb: fmt.CtbOptions = fmt.CtbOptions(), rtc4: bool = False, fill_missing: bool = False,
                  ax1: int = 1, ax2: int = 2, sign: float = 1.0, allow_extrapolation: bool = False) -> tuple:
     """Build the bytes of a controller table from a flow result folder.
