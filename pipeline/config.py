@@ -344,5 +344,7 @@ def read_batch_config(path, flow_options: dict, flow_tolerances: dict) -> dict:
             if type(v) is not type(default) and not (isinstance(default, float) and isinstance(v, int)
                                                      and not isinstance(v, bool)):
                 raise MarkcalError(f"option '{k}' in [{flow}] must be {type(default).__name__}", path)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise MarkcalError(f"option '{k}' in [{flow}] must be a finite number (got {v!r})", path)
             cfg[flow]["options"][k] = type(default)(v)
     return cfg

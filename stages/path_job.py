@@ -106,10 +106,10 @@ class Timing:
         if self.metric not in ("distance", "time"):
             raise MarkcalError(f"unknown jump cost metric {self.metric!r} (distance or time)")
         for k in ("jump_speed_mm_s", "mark_speed_mm_s"):
-            if not getattr(self, k) > 0:
-                raise MarkcalError(f"{k} must be > 0")
-        if not (self.settle_s >= 0 and self.point_dwell_s >= 0):
-            raise MarkcalError("settle_s and point_dwell_s must be >= 0")
+            if not 0 < getattr(self, k) <= 1e9:
+                raise MarkcalError(f"{k} must be > 0 and at most 1e9 (got {getattr(self, k)})")
+        if not (0 <= self.settle_s <= 3600 and 0 <= self.point_dwell_s <= 3600):
+            raise MarkcalError("settle_s and point_dwell_s must be >= 0 and at most an hour")
 
     @property
     def cost_coefficients(self) -> tuple:

@@ -281,3 +281,12 @@ def test_pmcal_command_out_is_a_folder(pm_session, tmp_path):
              "--out", str(tmp_path / "c")], tmp_path)
     assert_refused(o, "folder")
     assert os.listdir(tmp_path / "c") == []
+
+
+@pytest.mark.parametrize("opt,value", [("--jump-speed-mm-s", "inf"), ("--jump-speed-mm-s", "nan"),
+                                       ("--settle-us", "inf"), ("--dwell-us", "-1")])
+def test_path_timing_options(tmp_path, opt, value):
+    p = _job(tmp_path, GOOD)
+    o = run(["path", str(p), "--out", str(tmp_path / "o"), "--metric", "time", opt, value, "--quiet"], tmp_path)
+    assert_refused(o)
+    assert not (tmp_path / "o").exists() or os.listdir(tmp_path / "o") == []
