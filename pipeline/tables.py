@@ -38,7 +38,7 @@ def load_json(path, what: str = "JSON file"):
         with open(path, "rb") as fh:
             raw = fh.read()
     except FileNotFoundError:
-        raise MarkcalError(f"no such {what}", path) from None
+        raise MarkcalError("no such file", path) from None
     except OSError as exc:
         raise MarkcalError(f"cannot read {what} ({exc.strerror or exc})", path) from None
     try:

@@ -274,3 +274,14 @@ def test_export_from_a_scan_model_with_a_broken_spread(tmp_path, spread):
     assert_refused(o, str(src))
     assert "model.json" in o.err[0] or "not finite" in o.err[0], o.err
     assert not (tmp_path / "t.cor").exists()
+
+
+@pytest.mark.parametrize("data", [b"binary_compressed\n" + b"\x10\x00\x00\x00\x00\x01\x00\x00" + b"\xff" * 64,
+                                  b"ascii\n1 2 x 4\n"])
+def test_pcd_broken_body_is_one_plain_line(tmp_path, data):
+    p = tmp_path / "c.pcd"
+    p.write_bytes(b"# .PCD v0.7\nVERSION 0.7\nFIELDS x y z intensity\nSIZE 4 4 4 4\nTYPE F F F F\nCOUNT 1 1 1 1\n"
+                  b"WIDTH 1\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS 1\nDATA " + data)
+    (tmp_path / "plate.toml").write_text(PLATE)
+    _refused(["scan", str(p), "--plate", str(tmp_path / "plate.toml"), "--out", str(tmp_path / "o"), "--quiet"],
+             tmp_path, "c.pcd")

@@ -290,3 +290,11 @@ def test_path_timing_options(tmp_path, opt, value):
     o = run(["path", str(p), "--out", str(tmp_path / "o"), "--metric", "time", opt, value, "--quiet"], tmp_path)
     assert_refused(o)
     assert not (tmp_path / "o").exists() or os.listdir(tmp_path / "o") == []
+
+
+def test_drift_out_cannot_be_made(drift_csv, tmp_path):
+    f = tmp_path / "f.txt"
+    f.write_text("keep")
+    o = run(["drift", str(drift_csv), "--out", str(f / "sub"), "--quiet"], tmp_path)
+    assert_refused(o, "f.txt")
+    assert f.read_text() == "keep"
