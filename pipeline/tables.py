@@ -12,7 +12,7 @@ import numpy as np
 from markcal.stages.errors import MarkcalError
 from markcal.stages.limits import check_text_ends, check_values, max_abs_for
 
-__all__ = ["read_table", "check_increasing", "read_rbf_model", "load_json"]
+__all__ = ["read_table", "check_increasing", "read_rbf_model", "load_json", "read_input_bytes"]
 
 #: deepest nesting of lists and objects accepted in a JSON input
 JSON_MAX_DEPTH = 64
@@ -20,6 +20,20 @@ JSON_MAX_DEPTH = 64
 
 def _refuse_constant(name):
     raise ValueError(f"{name} is not a number JSON allows")
+
+
+def read_input_bytes(path, what: str = "file") -> bytes:
+    """The bytes of an input file; a missing, non-regular (FIFO: it would hang) or unreadable one is refused."""
+    path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise MarkcalError("not a regular file (a folder, FIFO or device)", path)
+    try:
+        with open(path, "rb") as fh:
+            return fh.read()
+    except FileNotFoundError:
+        raise MarkcalError("no such file", path) from None
+    except OSError as exc:
+        raise MarkcalError(f"cannot read {what} ({exc.strerror or exc})", path) from None
 
 
 def load_json(path, what: str = "JSON file"):
@@ -32,15 +46,7 @@ def load_json(path, what: str = "JSON file"):
         Missing or non-regular file, not UTF-8, not JSON, NaN/Infinity, too deep, a number too large.
     """
     path = os.fspath(path)
-    if os.path.exists(path) and not os.path.isfile(path):
-        raise MarkcalError("not a regular file (a folder, FIFO or device)", path)
-    try:
-        with open(path, "rb") as fh:
-            raw = fh.read()
-    except FileNotFoundError:
-        raise MarkcalError("no such file", path) from None
-    except OSError as exc:
-        raise MarkcalError(f"cannot read {what} ({exc.strerror or exc})", path) from None
+    raw = read_input_bytes(path, what)
     try:
         text = raw.decode("utf-8-sig")
     except UnicodeDecodeError as exc:

@@ -32,18 +32,11 @@ class Outcome:
     rss_growth_b: int
 
 
-def _vm_size_b() -> int:
+def _status_b(key: str) -> int:
+    """A size line of /proc/self/status (``VmSize``, ``VmRSS``) in bytes."""
     with open("/proc/self/status") as fh:
         for line in fh:
-            if line.startswith("VmSize:"):
-                return int(line.split()[1]) * 1024
-    return 0
-
-
-def _rss_b() -> int:
-    with open("/proc/self/status") as fh:
-        for line in fh:
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
     return 0
 
@@ -55,12 +48,12 @@ def run(argv, tmp_path, env=None) -> Outcome:
     errf, outf = os.path.join(tmp_path, ".hostile_err"), os.path.join(tmp_path, ".hostile_out")
     sys.stdout.flush()
     sys.stderr.flush()
-    rss0 = _rss_b()
+    rss0 = _status_b("VmRSS")
     pid = os.fork()
     if pid == 0:                                   # child
         code = 70
         try:
-            limit = _vm_size_b() + AS_HEADROOM
+            limit = _status_b("VmSize") + AS_HEADROOM
             resource.setrlimit(resource.RLIMIT_AS, (limit, limit))
             resource.setrlimit(resource.RLIMIT_CPU, (CPU_KILL_S, CPU_KILL_S + 5))
             signal.alarm(WALL_KILL_S)

@@ -285,3 +285,9 @@ def test_pcd_broken_body_is_one_plain_line(tmp_path, data):
     (tmp_path / "plate.toml").write_text(PLATE)
     _refused(["scan", str(p), "--plate", str(tmp_path / "plate.toml"), "--out", str(tmp_path / "o"), "--quiet"],
              tmp_path, "c.pcd")
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="no FIFOs")
+def test_inspect_a_fifo(tmp_path):
+    os.mkfifo(tmp_path / "t.cor")
+    _refused(["inspect", str(tmp_path / "t.cor"), "--out", str(tmp_path / "o"), "--quiet"], tmp_path, "regular file")

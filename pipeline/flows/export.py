@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from markcal.pipeline.tables import load_json, read_table
+from markcal.pipeline.tables import load_json, read_input_bytes, read_table
 from markcal.stages import table_formats as fmt
 from markcal.stages.ctable import TableStructure, check_interpolation, centred_nodes, sample_onto_nodes, table_structure
 from markcal.stages.errors import MarkcalError
@@ -311,11 +311,5 @@ def inspect_table(path, *, lens_mm: float | None = None, cor: fmt.CorOptions = f
                   ctb: fmt.CtbOptions = fmt.CtbOptions(), sign: float = 1.0) -> Inspected:
     """Read any supported table file back into node vectors, with its structural check."""
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except FileNotFoundError:
-        raise MarkcalError("no such file", path) from None
-    except OSError as exc:
-        raise MarkcalError(f"cannot read ({exc})", path) from None
+    data = read_input_bytes(path, "table")
     return inspect_bytes(data, path, lens_mm=lens_mm, cor=cor, ctb=ctb, sign=sign)
