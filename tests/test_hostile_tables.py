@@ -298,3 +298,26 @@ def test_drift_out_cannot_be_made(drift_csv, tmp_path):
     o = run(["drift", str(drift_csv), "--out", str(f / "sub"), "--quiet"], tmp_path)
     assert_refused(o, "f.txt")
     assert f.read_text() == "keep"
+
+
+@pytest.fixture(scope="module")
+def grid_csv(tmp_path_factory):
+    d = tmp_path_factory.mktemp("gr")
+    assert main(["render", "grid", "--seed", "3", "--out", str(d / "m"), "--quiet"]) == 0
+    return d / "m" / "measured.csv"
+
+
+@pytest.mark.parametrize("case,needle", [("huge", "line 4"), ("cut", "truncated"), ("nan", "line 4")])
+def test_grid_hostile_cells(grid_csv, tmp_path, case, needle):
+    lines = grid_csv.read_text().splitlines()
+    if case == "cut":
+        text = "\n".join(lines)[:-2]
+    else:
+        c = lines[3].split(",")
+        c[-1] = "1e308" if case == "huge" else "nan"
+        lines[3] = ",".join(c)
+        text = "\n".join(lines) + "\n"
+    p = tmp_path / "g.csv"
+    p.write_text(text)
+    _refused_nothing_written(["grid", str(p), "--out", str(tmp_path / "o"), "--quiet"], tmp_path, tmp_path / "o",
+                             "g.csv", needle)
