@@ -321,3 +321,15 @@ def test_grid_hostile_cells(grid_csv, tmp_path, case, needle):
     p.write_text(text)
     _refused_nothing_written(["grid", str(p), "--out", str(tmp_path / "o"), "--quiet"], tmp_path, tmp_path / "o",
                              "g.csv", needle)
+
+
+@pytest.mark.parametrize("value", ["1e308", "inf", "nan"])
+def test_selfcal_hostile_cell(tmp_path_factory, tmp_path, value):
+    src = tmp_path_factory.getbasetemp() / "selfcal_src"
+    if not src.exists():
+        assert main(["render", "selfcal", "--n", "5", "--k", "8", "--out", str(src), "--quiet"]) == 0
+    s = _copy(src, tmp_path)
+    header = (s / "grid_views.csv").read_text().splitlines()[0].split(",")
+    _set_cell(s / "grid_views.csv", 3, header.index("vx_um"), value)
+    _refused_nothing_written(["selfcal", str(s), "--out", str(tmp_path / "o"), "--quiet"], tmp_path, tmp_path / "o",
+                             "grid_views.csv", "line 3")
