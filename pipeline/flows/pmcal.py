@@ -11,7 +11,6 @@ commands with a calibration.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import time
 from dataclasses import dataclass
