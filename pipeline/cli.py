@@ -3,7 +3,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import logging
 import os
+import re
 import sys
 import warnings
 
@@ -60,9 +62,23 @@ def _report_warnings(caught, quiet: bool) -> None:
         print(f"markcal: warning: {cat}: {msg}" + (f" ({n} times)" if n > 1 else ""), file=sys.stderr)
 
 
+class _LogRecords(logging.Handler):
+    """Collects library log records (tifffile, igor2, …) so they are reported like warnings, once, not raw."""
+
+    def __init__(self):
+        super().__init__(logging.WARNING)
+        self.records = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+
 def main(argv=None) -> int:
     _numba_cache()
     args = build_parser().parse_args(argv)
+    logs = _LogRecords()
+    root = logging.getLogger()
+    root.addHandler(logs)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("default")
         for developer_only in (DeprecationWarning, PendingDeprecationWarning, FutureWarning):
@@ -70,25 +86,51 @@ def main(argv=None) -> int:
         try:
             return _run(args)
         finally:
+            root.removeHandler(logs)
+            caught = list(caught) + [warnings.WarningMessage(_ANSI.sub("", r.getMessage()), UserWarning,
+                                                             r.pathname, r.lineno) for r in logs.records]
             _report_warnings(caught, bool(getattr(args, "quiet", False)))
 
 
+_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+
+
+def _error_line(text: str) -> None:
+    """``markcal: error: TEXT`` as one line: no ANSI colour codes, no line breaks, no unprintable bytes."""
+    text = " ".join(_ANSI.sub("", text).split())
+    print(f"markcal: error: {text}".encode("utf-8", "backslashreplace").decode("utf-8"), file=sys.stderr)
+
+
 def _run(args) -> int:
+    from markcal.reports.files import abort_unfinished_outputs
+    ok = False
     try:
-        return args.func(args)
+        code = args.func(args)
+        ok = True
+        return code
     except MarkcalError as exc:
-        print(f"markcal: error: {exc}", file=sys.stderr)
+        _error_line(str(exc))
         return 1
     except KeyboardInterrupt:
         print("markcal: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:              # a folder that cannot be written, a full disk: one line, no traceback
-        where = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
-        print(f"markcal: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        where = f"{os.fsdecode(exc.filename)}: " if getattr(exc, "filename", None) else ""
+        _error_line(f"{where}{exc.strerror or exc}")
+        return 1
+    except UnicodeError as exc:         # a name or text no codec can hold
+        _error_line(f"text that cannot be encoded or decoded ({exc})")
         return 1
     except MemoryError:
-        print("markcal: error: out of memory: the input is larger than this machine can hold", file=sys.stderr)
+        _error_line("out of memory: the input is larger than this machine can hold")
         return 1
+    except Exception:                   # a bug: keep the traceback, say so
+        print("markcal: internal error (a bug, not your input's fault as far as markcal knows): please report it "
+              "with the command line and the traceback below", file=sys.stderr)
+        raise
+    finally:
+        if not ok:
+            abort_unfinished_outputs()
 
 
 if __name__ == "__main__":

@@ -20,6 +20,13 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message):
+        """A bad command line is bad input: one line on stderr, exit status 1 (not argparse's usage block)."""
+        import sys
+        text = " ".join(str(message).split())
+        print(f"markcal: error: {self.prog}: {text} (see {self.prog} --help)", file=sys.stderr)
+        raise SystemExit(1)
+
     def add_argument(self, *args, **kwargs):
         """As argparse's; ``--out`` also answers to ``-o``; an option with a default but no help shows its default."""
         if args == ("--out",):

@@ -9,8 +9,10 @@ from markcal.pipeline.progress import progress
 
 def _cor_ctb_options(args):
     from markcal.stages.table_formats import CorOptions, CtbOptions
-    cor = CorOptions(node_spacing_units=args.node_spacing or 1024.0, outer=args.outer, sign=args.cor_sign)
-    ctb = CtbOptions(node_spacing_bits=args.node_spacing or 65535.0 / 64.0, content=args.ctb_content, outer=args.outer)
+    given = args.node_spacing is not None              # 0 or nan is refused, not taken for "the default"
+    cor = CorOptions(node_spacing_units=args.node_spacing if given else 1024.0, outer=args.outer, sign=args.cor_sign)
+    ctb = CtbOptions(node_spacing_bits=args.node_spacing if given else 65535.0 / 64.0, content=args.ctb_content,
+                     outer=args.outer)
     return cor, ctb
 
 
@@ -23,6 +25,7 @@ def _warn(t) -> None:
 def cmd_export(args) -> int:
     from markcal.pipeline.flows.export import export_table, inspect_bytes
     from markcal.reports.export import write_export
+    from markcal.reports.files import check_out_file
     from markcal.stages.errors import MarkcalError
     from markcal.stages.table_formats import FORMATS
 
@@ -33,6 +36,7 @@ def cmd_export(args) -> int:
     if not args.format or not args.source or not args.out:
         raise MarkcalError("usage: markcal export FORMAT RESULT_DIR --out FILE (markcal export --list names the formats)")
     say = progress(args.quiet)
+    check_out_file(args.out, [args.source])
     cor, ctb = _cor_ctb_options(args)
     data, facts = export_table(args.format, args.source, lens_mm=args.lens_mm, cor=cor, ctb=ctb, rtc4=args.rtc4,
                                fill_missing=args.fill_missing, ax1=args.ax1, ax2=args.ax2, sign=args.sign,

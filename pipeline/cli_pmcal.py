@@ -46,9 +46,9 @@ def _cmd_command(args) -> int:
         raise MarkcalError("usage: markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
     if args.depth_um is None:
         raise MarkcalError("markcal pmcal command needs --depth-um")
+    from markcal.reports.files import check_out_file
     out = os.path.abspath(args.out)
-    if out in (os.path.abspath(args.extra[0]), os.path.abspath(args.extra[1])):
-        raise MarkcalError("--out would overwrite an input file", args.out)
+    check_out_file(args.out, args.extra)
     cols = run_command(args.extra[0], args.extra[1], args.depth_um)
     write_csv(out, cols)
     progress(args.quiet)(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
@@ -60,6 +60,8 @@ def cmd_drift(args) -> int:
     from markcal.pipeline.flows.drift import run_drift
     from markcal.reports.drift_outputs import write_drift_outputs
 
+    from markcal.reports.files import check_out_dir
+    check_out_dir(args.out, [p for p in (args.drift, args.truth) if p])       # before any computation
     say = progress(args.quiet)
     res = run_drift(args.drift, method=args.method, truth_path=args.truth, noise_um=args.noise_um, alpha=args.alpha)
     paths = write_drift_outputs(res, args.out, report=not args.no_report)

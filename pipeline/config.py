@@ -13,6 +13,7 @@ import tomllib
 from dataclasses import dataclass, fields, replace
 
 from markcal.stages.errors import MarkcalError
+from markcal.stages.limits import check_text_ends
 from markcal.stages.plate import PlateSpec
 
 
@@ -28,6 +29,11 @@ def load_toml(path, what: str = "config file") -> dict:
         raise MarkcalError(f"not valid TOML: {exc}", path) from None
     except OSError as exc:
         raise MarkcalError(f"cannot read ({exc})", path) from None
+
+
+def _read_bytes(path) -> bytes:
+    with open(path, "rb") as fh:
+        return fh.read()
 
 
 @dataclass(frozen=True)
@@ -143,25 +149,40 @@ def read_config(path, schema: dict, what: str = "config file") -> dict:
 
 _DEFAULT_PLATE = PlateSpec()
 PLATE_SCHEMA = {
-    "grid": {"rows": Key("int", _DEFAULT_PLATE.rows, min=3), "cols": Key("int", _DEFAULT_PLATE.cols, min=3),
-             "pitch_mm": Key("float", _DEFAULT_PLATE.pitch_mm, positive=True, unit="mm")},
-    "fiducial": {"ring_radii_mm": Key("floats", _DEFAULT_PLATE.ring_radii_mm, positive=True, unit="mm"),
+    "grid": {"rows": Key("int", required=True, min=3, max=1000), "cols": Key("int", required=True, min=3, max=1000),
+             "pitch_mm": Key("float", required=True, positive=True, max=1000.0, unit="mm")},
+    "fiducial": {"ring_radii_mm": Key("floats", _DEFAULT_PLATE.ring_radii_mm, positive=True, max=500.0, unit="mm"),
                  "orientation_mark": Key("ints", (), min=0)},
-    "galvo": {"d_mm": Key("float", _DEFAULT_PLATE.d_mm, positive=True, unit="mm"),
-              "e_mm": Key("float", _DEFAULT_PLATE.e_mm, min=0.0, unit="mm")},
-    "correction": {"grid_step_mm": Key("float", _DEFAULT_PLATE.grid_step_mm, positive=True, unit="mm")},
+    "galvo": {"d_mm": Key("float", _DEFAULT_PLATE.d_mm, positive=True, max=10_000.0, unit="mm"),
+              "e_mm": Key("float", _DEFAULT_PLATE.e_mm, min=0.0, max=10_000.0, unit="mm")},
+    "correction": {"grid_step_mm": Key("float", _DEFAULT_PLATE.grid_step_mm, min=1e-3, unit="mm")},
 }
 
 
+#: the most nodes of the correction grid a plate spec may ask for ([correction] grid_step_mm over the field)
+MAX_CORRECTION_NODES = 1_000_000
+
+
 def read_plate_spec(path) -> PlateSpec:
-    """Read a PLATE.toml (``[grid] rows cols pitch_mm``, ``[fiducial] ring_radii_mm``,
+    """Read a PLATE.toml (``[grid] rows cols pitch_mm``, required; ``[fiducial] ring_radii_mm``,
     ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``; lengths in mm).
 
     ``[fiducial] orientation_mark = [row, col]`` declares a grid site left
-    unmarked, which tells the plate's orientation at any angle."""
+    unmarked, which tells the plate's orientation at any angle. An empty file,
+    or one cut before its ``[grid]`` keys, is refused (no silent defaults)."""
     path = os.fspath(path)
+    if os.path.isfile(path) and os.path.getsize(path) < 4096 and not _read_bytes(path).strip():
+        raise MarkcalError("empty plate spec: needs [grid] rows, cols and pitch_mm", path)
+    if os.path.isfile(path):
+        check_text_ends(_read_bytes(path), path)
     c = read_config(path, PLATE_SCHEMA, "plate spec")
     spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"])
+    hx, hy = spec.half_extent_mm
+    nodes = (2 * math.ceil(hx / spec.grid_step_mm) + 1) * (2 * math.ceil(hy / spec.grid_step_mm) + 1)
+    if nodes > MAX_CORRECTION_NODES:
+        raise MarkcalError(f"[correction] grid_step_mm = {spec.grid_step_mm:g} mm gives {nodes:,.0f} correction nodes "
+                           f"over the ±{hx:g} x ±{hy:g} mm field; at most {MAX_CORRECTION_NODES:,} (a coarser step)",
+                           path)
     if 2 * max(spec.ring_radii_mm) >= spec.pitch_mm:
         raise MarkcalError("ring_radii_mm must be positive and the rings must fit inside the pitch", path)
     mark = spec.orientation_mark
@@ -323,5 +344,7 @@ def read_batch_config(path, flow_options: dict, flow_tolerances: dict) -> dict:
             if type(v) is not type(default) and not (isinstance(default, float) and isinstance(v, int)
                                                      and not isinstance(v, bool)):
                 raise MarkcalError(f"option '{k}' in [{flow}] must be {type(default).__name__}", path)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise MarkcalError(f"option '{k}' in [{flow}] must be a finite number (got {v!r})", path)
             cfg[flow]["options"][k] = type(default)(v)
     return cfg

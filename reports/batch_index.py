@@ -13,7 +13,7 @@ import os
 import numpy as np
 
 from .files import atomic_write_text, write_csv, write_json
-from .html import esc, img, new_figure, num, page, png_b64
+from .html import drawable, esc, img, new_figure, num, page, png_b64
 
 __all__ = ["write_batch_index", "batch_index_html"]
 
@@ -140,7 +140,7 @@ def _trend_plot(flow, key, label, records) -> str:
     for op, lim in _limit(rs, key).items():
         ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {op} {lim:g}")
     ax.set_xticks(keep)
-    ax.set_xticklabels([rs[i]["name"].split("/")[-1] for i in keep], rotation=60, ha="right", fontsize=7)
+    ax.set_xticklabels([drawable(rs[i]["name"].split("/")[-1]) for i in keep], rotation=60, ha="right", fontsize=7)
     ax.set_ylabel(label)
     ax.set_xlabel("input, in time order (input file modification time)")
     ax.grid(alpha=0.3)

@@ -34,7 +34,8 @@ def atomic_write_bytes(path, data: bytes) -> None:
 
 
 def atomic_write_text(path, text: str) -> None:
-    atomic_write_bytes(path, text.encode("utf-8"))
+    """UTF-8 text; characters UTF-8 cannot hold (a non-UTF-8 file name's bytes) are written as ``\\udcXX``."""
+    atomic_write_bytes(path, text.encode("utf-8", "backslashreplace"))
 
 
 LOCK_NAME = ".markcal.lock"
@@ -43,6 +44,7 @@ LOCK_NAME = ".markcal.lock"
 def check_out_dir(out_dir, inputs=()) -> None:
     """Refuse an output folder that is an existing file, an input itself, or a folder holding an input."""
     from markcal.stages.errors import MarkcalError
+    check_path_length(out_dir)
     out = os.path.realpath(out_dir)
     if os.path.exists(out_dir) and not os.path.isdir(out_dir):
         raise MarkcalError("--out names an existing file, not a folder", out_dir)
@@ -51,6 +53,33 @@ def check_out_dir(out_dir, inputs=()) -> None:
         if rp == out or rp.startswith(out.rstrip(os.sep) + os.sep):
             raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
                                "choose another folder", out_dir)
+
+
+def check_out_file(out_path, inputs=()) -> None:
+    """Refuse an output *file* path that names a folder, an input, or lies in a folder that does not exist
+    and cannot be made (checked before any computation)."""
+    from markcal.stages.errors import MarkcalError
+    if os.path.isdir(out_path):
+        raise MarkcalError("--out names a folder; give the table file to write", out_path)
+    rp = os.path.realpath(out_path)
+    for p in inputs:
+        ip = os.path.realpath(p)
+        if rp == ip or ip.startswith(rp.rstrip(os.sep) + os.sep):
+            raise MarkcalError(f"--out would overwrite an input ({p})", out_path)
+    check_path_length(out_path)
+
+
+def check_path_length(path) -> None:
+    """Refuse a path the file system cannot hold (a component over 255 bytes, the whole over 4095)."""
+    from markcal.stages.errors import MarkcalError
+    b = os.fsencode(os.path.abspath(path))
+    name_max = 255
+    if len(b) > 4095:
+        raise MarkcalError(f"path is {len(b)} bytes long; at most 4095", path if len(b) < 300 else b[:120].decode(
+            "utf-8", "replace") + "…")
+    longest = max(b.split(os.fsencode(os.sep)), key=len)
+    if len(longest) > name_max:
+        raise MarkcalError(f"a path component is {len(longest)} bytes long; at most {name_max}", path)
 
 
 def _pid_alive(pid: int) -> bool:
@@ -120,9 +149,21 @@ class OutputFolder:
 
     def __init__(self, out_dir):
         self.out_dir = os.fspath(out_dir)
+        self.created = not os.path.isdir(self.out_dir)
         self.summary_path = start_outputs(self.out_dir)
         self.lock_path = _take_lock(self.out_dir)
         self.paths = {}
+        _UNFINISHED.append(self)
+
+    def abort(self) -> None:
+        """Remove every file this run wrote (and the folder if this run made it and it is now empty)."""
+        for p in list(self.paths.values()) + [self.lock_path]:
+            if os.path.isfile(p):
+                os.unlink(p)
+        if self.created and os.path.isdir(self.out_dir) and not os.listdir(self.out_dir):
+            os.rmdir(self.out_dir)
+        if self in _UNFINISHED:
+            _UNFINISHED.remove(self)
 
     def _path(self, name: str) -> str:
         p = self.paths[name] = os.path.join(self.out_dir, name)
@@ -151,7 +192,23 @@ class OutputFolder:
         self.paths["summary.json"] = self.summary_path
         if os.path.exists(self.lock_path):
             os.unlink(self.lock_path)
+        if self in _UNFINISHED:
+            _UNFINISHED.remove(self)
         return dict(self.paths)
+
+
+#: output folders of this process that were started and not finished
+_UNFINISHED: list = []
+
+
+def abort_unfinished_outputs() -> None:
+    """After a failure: remove the files of every output folder this process started but did not finish,
+    so a failed run leaves nothing half-written (called by the CLI's error handler)."""
+    for folder in list(_UNFINISHED):
+        try:
+            folder.abort()
+        except OSError:
+            _UNFINISHED.remove(folder)
 
 
 def _fmt(v):

@@ -108,8 +108,16 @@ def arrow_key(ax, q, length: float, label: str) -> None:
     key.set_zorder(6)
 
 
+def drawable(text):
+    """Text matplotlib can draw: a non-UTF-8 file name's bytes (surrogate escapes) shown as ``\\udcXX``."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(text, str) else text
+
+
 def png_b64(fig) -> str:
     """Render ``fig`` to PNG and return it base64-encoded (the figure is cleared)."""
+    from matplotlib.text import Text
+    for t in fig.findobj(Text):
+        t.set_text(drawable(t.get_text()))
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
     fig.clear()

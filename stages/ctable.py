@@ -113,7 +113,10 @@ def check_interpolation(offset_mm, table: GridCorrection, region_mm: tuple, tole
 
 def check_range(values: np.ndarray, lo: float, hi: float, what: str, unit: str) -> None:
     """Refuse values a format cannot hold (no silent clipping)."""
-    v = np.asarray(values)
+    v = np.asarray(values, float)
+    if not np.all(np.isfinite(v)):
+        raise MarkcalError(f"{what}: {int((~np.isfinite(v)).sum())} entries are not finite (NaN or infinite): "
+                           "the correction is broken; nothing written")
     bad = (v < lo) | (v > hi)
     if np.any(bad):
         worst = v[bad][np.argmax(np.abs(v[bad]))]

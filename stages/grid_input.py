@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import MarkcalError
+from .limits import check_text_ends, max_abs_for
 
 MIN_MARKS = 9
 BJJCZ_CENTRE_UNITS = 0x8000
@@ -155,6 +156,11 @@ def parse_grid(text: str, units_per_mm: float | None = None, centre_units: float
     meas = np.array(meas, float).reshape(-1, 2)
     rc = np.array(rc, int).reshape(-1, 2)
     lines = np.array(lines, int)
+    for name, xy in (("commanded position (mm)", cmd), ("measured position (mm)", meas)):
+        far = np.flatnonzero(np.abs(xy).max(axis=1, initial=0.0) > max_abs_for("xy_mm"))
+        if len(far):
+            raise MarkcalError(f"line {lines[far[0]]}: {name} {np.abs(xy[far[0]]).max():g} beyond the physical "
+                               f"limit ±{max_abs_for('xy_mm'):g} mm")
     check_grid(cmd, meas, lines)
     return MeasuredGrid(cmd, meas, rc[:, 0], rc[:, 1], lines, layout, scale, skipped)
 
@@ -180,6 +186,8 @@ def check_grid(cmd_mm: np.ndarray, meas_mm: np.ndarray, lines: np.ndarray) -> No
 def read_grid(path, units_per_mm: float | None = None, centre_units: float = 32768.0) -> MeasuredGrid:
     """Read a measured grid file; errors name the file. See :func:`parse_grid`."""
     path = os.fspath(path)
+    if os.path.exists(path) and not os.path.isfile(path):
+        raise MarkcalError("not a regular file (a folder, FIFO or device)", path)
     try:
         with open(path, encoding="utf-8-sig") as fh:
             text = fh.read()
@@ -188,6 +196,7 @@ def read_grid(path, units_per_mm: float | None = None, centre_units: float = 327
     except (OSError, UnicodeDecodeError) as exc:
         raise MarkcalError(f"cannot read ({exc})", path) from None
     try:
+        check_text_ends(text)
         return parse_grid(text, units_per_mm, centre_units)
     except MarkcalError as exc:
         raise exc.with_path(path) from None

@@ -29,6 +29,7 @@ right, y down the rows.
 from __future__ import annotations
 
 import re
+import struct
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -125,7 +126,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
     except MarkcalError as exc:
         raise exc.with_path(path) from None
     except (ValueError, OSError, EOFError, KeyError, IndexError, TypeError, AssertionError, RuntimeError,
-            UnicodeDecodeError) as exc:
+            UnicodeDecodeError, struct.error, ZeroDivisionError, OverflowError) as exc:
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise MarkcalError(f"not a readable {name.upper()} image ({first})", path) from None
     data = np.asarray(data, np.float64)
@@ -276,6 +277,9 @@ def parse_gsf(buf: bytes):
             header[k.strip()] = v.strip()
     start = end + (4 - end % 4)                      # 1-4 NULs pad the header to a multiple of 4
     xres, yres = int(header["XRes"]), int(header["YRes"])
+    if xres < 1 or yres < 1:
+        raise MarkcalError(f"GSF declares {xres} x {yres} pixels: no image")
+    check_image_size((yres, xres))
     need = 4 * xres * yres
     if len(buf) - start < need:
         raise MarkcalError(f"GSF data truncated ({len(buf) - start} of {need} bytes)")

@@ -7,11 +7,13 @@ PCD (ASCII, binary or binary_compressed, via Open3D's tensor reader), CSV/TXT/XY
 from __future__ import annotations
 
 import os
+import struct
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import MarkcalError
+from .limits import check_budget, check_text_ends, max_abs_for
 
 INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance", "i",
                    "backscatter", "scalar_backscatter", "gray", "grey")
@@ -49,10 +51,12 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
     if ext not in readers:
         raise MarkcalError(f"unknown point cloud extension '{ext}' (use .ply, .pcd, .csv, .txt, .xyz or .npy)", path)
     try:
+        if ext in (".ply", ".pcd"):
+            _check_declared_sizes(path, ext)
         xyz, inten = readers[ext](path)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
-    except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError) as exc:
+    except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError, struct.error) as exc:
         raise MarkcalError(f"cannot read {ext[1:].upper()} file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", path) from None
     xyz = np.asarray(xyz, np.float64) * units_scale
     inten = np.asarray(inten, np.float64).ravel()
@@ -63,6 +67,10 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
     bad = ~np.all(np.isfinite(xyz), axis=1)
     if bad.any():
         raise MarkcalError(f"{int(bad.sum())} points have NaN or infinite coordinates", path)
+    far = np.abs(xyz).max(axis=1) > max_abs_for("xyz_mm")
+    if far.any():
+        raise MarkcalError(f"{int(far.sum())} points lie beyond ±10 m ({max_abs_for('xyz_mm'):g} mm; e.g. "
+                           f"{np.abs(xyz[far][0]).max():g} mm): not a scan of a plate (wrong units?)", path)
     if not np.all(np.isfinite(inten)):
         raise MarkcalError("intensity has NaN or infinite values", path)
     return PointCloud(xyz_mm=xyz, intensity=inten)
@@ -106,6 +114,7 @@ def _read_pcd(path):
         raise MarkcalError("not a PCD file (no FIELDS header)")
     name = _pick_intensity(fields)
     import open3d as o3d
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)   # no coloured warnings on stderr
     pc = o3d.t.io.read_point_cloud(path)
     if "positions" not in pc.point:
         raise MarkcalError("PCD has no points")
@@ -119,14 +128,108 @@ def _read_pcd(path):
     return xyz, inten
 
 
+#: bytes one vertex of a cloud costs while reading and processing it (a few float64 copies of x, y, z, i)
+BYTES_PER_POINT = 160
+#: bytes a row of a PLY list property costs in plyfile (an object array of a small array per row)
+BYTES_PER_LIST_ROW = 120
+_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
+              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _header_lines(path, end: bytes, what: str) -> tuple:
+    """The header lines up to ``end`` (at most 64 kB) and the byte count left after it."""
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    size = os.path.getsize(path)
+    i = head.find(end)
+    if i < 0:
+        raise MarkcalError(f"{what} header has no '{end.decode().strip()}' line in its first 64 kB (truncated or "
+                           "not a " + what + " file)")
+    j = head.find(b"\n", i)
+    body = size - (j + 1 if j >= 0 else len(head))
+    return head[:i].decode("ascii", "replace").splitlines(), body
+
+
+def _int_field(text: str, what: str) -> int:
+    try:
+        v = int(text)
+    except ValueError:
+        raise MarkcalError(f"{what} = {text!r} is not a whole number") from None
+    if v < 0:
+        raise MarkcalError(f"{what} = {v} is negative")
+    return v
+
+
+def _check_declared_sizes(path, ext: str) -> None:
+    """Refuse a PLY/PCD whose header declares more data than the file holds or the memory budget allows."""
+    if ext == ".ply":
+        lines, body = _header_lines(path, b"end_header", "PLY")
+        fmt = next((ln.split()[1] for ln in lines if ln.startswith("format ") and len(ln.split()) > 1), "ascii")
+        elements = []                                   # [name, count, fixed bytes per row, list properties]
+        for ln in lines:
+            t = ln.split()
+            if t[:1] == ["element"] and len(t) == 3:
+                elements.append([t[1], _int_field(t[2], f"element {t[1]} count"), 0, 0])
+            elif t[:1] == ["property"] and elements:
+                if len(t) >= 5 and t[1] == "list":
+                    elements[-1][2] += _PLY_SIZES.get(t[2], 4)        # at least the count of each row
+                    elements[-1][3] += 1
+                elif len(t) >= 3:
+                    elements[-1][2] += _PLY_SIZES.get(t[1], 8)
+        least = sum(n * (b if fmt != "ascii" else 2 * max(1, b // 4)) for _, n, b, _ in elements)
+        if least > body:
+            name, n = max(((e[0], e[1]) for e in elements), key=lambda e: e[1], default=("", 0))
+            raise MarkcalError(f"header declares {n:,} {name} rows needing at least {least:,} bytes, but the file "
+                               f"holds {body:,}: truncated or a hostile header")
+        for name, n, b, lists in elements:
+            check_budget(n * (BYTES_PER_POINT if name == "vertex" else b) + n * lists * BYTES_PER_LIST_ROW,
+                         f"element {name} ({n:,} rows{', a list property' if lists else ''})")
+        return
+    lines, body = _header_lines(path, b"DATA", "PCD")
+    fields = {}
+    for ln in lines:
+        t = ln.split()
+        if t:
+            fields[t[0].upper()] = t[1:]
+    n = _int_field((fields.get("POINTS") or ["0"])[0], "POINTS")
+    width = _int_field((fields.get("WIDTH") or [str(n)])[0], "WIDTH")
+    height = _int_field((fields.get("HEIGHT") or ["1"])[0], "HEIGHT")
+    if width * height != n:
+        raise MarkcalError(f"WIDTH x HEIGHT = {width * height:,} but POINTS = {n:,}")
+    sizes = [_int_field(v, "SIZE") for v in fields.get("SIZE", [])]
+    counts = [_int_field(v, "COUNT") for v in fields.get("COUNT", ["1"] * len(sizes))]
+    row = sum(s * c for s, c in zip(sizes, counts)) or 4
+    with open(path, "rb") as fh:
+        data_kind = next((ln.split()[1].lower() for ln in fh.read(65536).decode("ascii", "replace").splitlines()
+                          if ln.startswith("DATA") and len(ln.split()) > 1), "ascii")
+    least = {"binary": n * row, "ascii": n * 2 * max(1, len(sizes))}.get(data_kind, 0)
+    if least > body:
+        raise MarkcalError(f"header declares {n:,} points needing at least {least:,} bytes, but the file holds "
+                           f"{body:,}: truncated or a hostile header")
+    check_budget(n * (BYTES_PER_POINT + row), f"{n:,} points")
+
+
 def _read_npy(path):
+    with open(path, "rb") as fh:
+        try:
+            version = np.lib.format.read_magic(fh)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                           else np.lib.format.read_array_header_2_0)
+            shape, fortran, dtype = read_header(fh)
+        except (ValueError, EOFError) as exc:
+            raise MarkcalError(f"not an NPY array ({exc})") from None
+    if dtype.kind not in "iuf" or dtype.names:
+        raise MarkcalError(f"NPY array holds {dtype} values; need real numbers (x, y, z, intensity)")
+    if len(shape) != 2 or shape[1] != 4:
+        raise MarkcalError(f"NPY array has shape {shape}; need N x 4 (x, y, z, intensity)")
+    check_budget(shape[0] * BYTES_PER_POINT, f"{shape[0]:,} points")
     a = np.load(path, allow_pickle=False)
-    if a.ndim != 2 or a.shape[1] < 4:
-        raise MarkcalError(f"NPY array has shape {a.shape}; need N x 4 (x, y, z, intensity)")
     return a[:, :3], a[:, 3]
 
 
 def _read_text(path):
+    with open(path, "rb") as fh:
+        check_text_ends(fh.read())
     with open(path, encoding="utf-8", errors="replace") as fh:
         first = fh.readline()
     delim = "," if "," in first else None

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import MarkcalError
+from .limits import max_abs_for
 
 __all__ = ["KINDS", "Stroke", "Job", "Timing", "Tour", "make_job", "endpoints", "tour_points",
            "jump_lengths_mm", "jump_cost", "tour_cost", "tour_stats", "duplicate_groups", "input_tour"]
@@ -105,10 +106,10 @@ class Timing:
         if self.metric not in ("distance", "time"):
             raise MarkcalError(f"unknown jump cost metric {self.metric!r} (distance or time)")
         for k in ("jump_speed_mm_s", "mark_speed_mm_s"):
-            if not getattr(self, k) > 0:
-                raise MarkcalError(f"{k} must be > 0")
-        if not (self.settle_s >= 0 and self.point_dwell_s >= 0):
-            raise MarkcalError("settle_s and point_dwell_s must be >= 0")
+            if not 0 < getattr(self, k) <= 1e9:
+                raise MarkcalError(f"{k} must be > 0 and at most 1e9 (got {getattr(self, k)})")
+        if not (0 <= self.settle_s <= 3600 and 0 <= self.point_dwell_s <= 3600):
+            raise MarkcalError("settle_s and point_dwell_s must be >= 0 and at most an hour")
 
     @property
     def cost_coefficients(self) -> tuple:
@@ -139,6 +140,17 @@ class Tour:
 
 # ----------------------------------------------------------------------------- building
 
+def check_number_leaves(xy, what: str, source=None) -> None:
+    """Refuse coordinates given as strings, booleans or anything but JSON numbers (nested lists)."""
+    stack = [xy]
+    while stack:
+        o = stack.pop()
+        if isinstance(o, (list, tuple)):
+            stack.extend(o)
+        elif isinstance(o, bool) or not isinstance(o, (int, float)):
+            raise MarkcalError(f"{what}: coordinates must be numbers, not {type(o).__name__} {o!r}", source)
+
+
 def make_job(strokes, source=None) -> Job:
     """Check strokes and build a :class:`Job`.
 
@@ -165,6 +177,9 @@ def make_job(strokes, source=None) -> Job:
                                source) from None
         if not np.all(np.isfinite(p)):
             raise MarkcalError(f"stroke {i} ({kind}): NaN or infinite coordinate", source)
+        if np.abs(p).max(initial=0.0) > max_abs_for("xy_mm"):
+            raise MarkcalError(f"stroke {i} ({kind}): coordinate {np.abs(p).max():g} mm beyond the physical "
+                               f"limit ±{max_abs_for('xy_mm'):g} mm", source)
         if kind == "contour" and len(p) > 1 and np.array_equal(p[0], p[-1]):
             p = p[:-1]                              # closing vertex written out
         if kind == "point" and len(p) != 1:

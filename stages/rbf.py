@@ -54,8 +54,11 @@ class RBFModel:
             s = float(d["spread_mm"])
         except (KeyError, TypeError, ValueError) as exc:
             raise MarkcalError(f"not a markcal RBF model: {exc}") from None
-        if len(b) != w.shape[1] or s <= 0:
-            raise MarkcalError("not a markcal RBF model: inconsistent sizes or spread")
+        if len(b) != w.shape[1] or not 1e-6 <= s <= 1e6:
+            raise MarkcalError(f"not a markcal RBF model: inconsistent sizes or spread (spread_mm = {s:g}; "
+                               "1e-6 to 1e6 mm)")
+        if not (np.all(np.isfinite(c)) and np.all(np.isfinite(w)) and np.all(np.isfinite(b))):
+            raise MarkcalError("not a markcal RBF model: non-finite centres, weights or bias")
         return cls(c, w, b, s)
 
 

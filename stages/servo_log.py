@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from markcal.stages.errors import MarkcalError
+from markcal.stages.limits import check_file_ends, check_values, max_abs_for
 from markcal.stages.servo_cases import dominant_frequency_hz
 from markcal.stages.servo_sim import step_metrics
 
@@ -169,6 +170,7 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
     if pos_unit == "counts" and not (counts_per_mm > 0 and np.isfinite(counts_per_mm)):
         raise MarkcalError(f"positions in counts need a positive counts per mm (got {counts_per_mm:g})")
     lay = sniff_layout(path)
+    check_file_ends(path)
     roles = (("time", time_col), ("reference", ref_col), ("position", pos_col))
     idx = [_column_index(spec, lay, role, path) for role, spec in roles]
     names = tuple(lay.header[i] if lay.header else f"#{i}" for i in idx)
@@ -209,6 +211,10 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
             raise MarkcalError(f"line {line}: {name} = {what}", path)
         cols[role] = v
     scale = 1.0 if pos_unit == "mm" else 1e-3 if pos_unit == "um" else 1.0 / counts_per_mm
+    for (role, _), name, unit, f in zip(roles, names, ("_s", "_mm", "_mm"),
+                                        (TIME_UNITS[time_unit], scale, scale)):
+        check_values(cols[role] * f, f"{name} (in{unit.replace('_', ' ')})", path, lay.first_data_line,
+                     limit=max_abs_for(unit))
     return DriveLog(t_s=cols["time"] * TIME_UNITS[time_unit], ref_mm=cols["reference"] * scale,
                     pos_mm=cols["position"] * scale, columns=names, first_data_line=lay.first_data_line)
 

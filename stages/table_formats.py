@@ -59,6 +59,10 @@ CTB_SIZE = 16900
 
 # ----------------------------------------------------------------------------- EZCAD .cor
 
+#: the widest spacing of the 65 nodes of a .cor/.ctb table (the 16-bit field is 65536 units wide)
+MAX_NODE_SPACING = 65536.0
+
+
 @dataclass(frozen=True)
 class CorOptions:
     """What the public sources leave open about JCZ_COR_2_1 (see the README).
@@ -83,8 +87,11 @@ class CorOptions:
     sign: str = "subtract"
 
     def __post_init__(self):
-        if self.outer not in ("x", "y") or self.sign not in ("subtract", "add") or self.node_spacing_units <= 0:
-            raise MarkcalError("cor options: outer must be x or y, sign subtract or add, node spacing positive")
+        if not 0 < self.node_spacing_units <= MAX_NODE_SPACING:
+            raise MarkcalError(f"--node-spacing must be positive and at most {MAX_NODE_SPACING} galvo units "
+                               f"(got {self.node_spacing_units})")
+        if self.outer not in ("x", "y") or self.sign not in ("subtract", "add"):
+            raise MarkcalError("cor options: outer must be x or y, sign subtract or add")
 
 
 def _entries_to_xy(a: np.ndarray, outer: str) -> np.ndarray:
@@ -158,8 +165,11 @@ class CtbOptions:
     outer: str = "y"
 
     def __post_init__(self):
-        if self.content not in ("absolute", "offset") or self.node_spacing_bits <= 0 or self.outer not in ("x", "y"):
-            raise MarkcalError("ctb options: content must be absolute or offset, outer x or y, node spacing positive")
+        if not 0 < self.node_spacing_bits <= MAX_NODE_SPACING:
+            raise MarkcalError(f"--node-spacing must be positive and at most {MAX_NODE_SPACING} bits "
+                               f"(got {self.node_spacing_bits})")
+        if self.content not in ("absolute", "offset") or self.outer not in ("x", "y"):
+            raise MarkcalError("ctb options: content must be absolute or offset, outer x or y")
 
 
 def encode_ctb(table: GridCorrection, bits_per_mm: float, opts: CtbOptions = CtbOptions()) -> bytes:
@@ -218,6 +228,9 @@ def encode_correxion(nominal_x_mm: np.ndarray, nominal_y_mm: np.ndarray, measure
         The RTC calibration factor K.
     """
     ny, nx = len(nominal_y_mm), len(nominal_x_mm)
+    limit_mm = (2 ** 16 if rtc4 else 2 ** 20) / bits_per_mm
+    check_range(np.r_[np.ravel(nominal_x_mm), np.ravel(nominal_y_mm), np.ravel(measured_xy_mm)],
+                -limit_mm, limit_mm, "correXion position", "mm")
     if nx % 2 == 0 or ny % 2 == 0:
         raise MarkcalError(f"correXion needs odd grid counts symmetric about 0 (got {nx} x {ny})")
     limit_bits = 2 ** 16 if rtc4 else 2 ** 20
@@ -280,6 +293,10 @@ def decode_correxion(text: str, path=None) -> dict:
 
 # ----------------------------------------------------------------------------- Aerotech A3200
 
+#: the largest A3200 correction written (µm): a stage error beyond 10 mm is a broken map
+A3200_MAX_UM = 10_000.0
+
+
 def encode_a3200(x_mm: np.ndarray, y_mm: np.ndarray, error_x_um: np.ndarray, error_y_um: np.ndarray,
                  ax1: int = 1, ax2: int = 2, sign: float = 1.0) -> str:
     """An A3200 2D calibration table from a measured stage error map.
@@ -299,6 +316,8 @@ def encode_a3200(x_mm: np.ndarray, y_mm: np.ndarray, error_x_um: np.ndarray, err
     if len(x_mm) < 2 or len(y_mm) < 2 or not (np.allclose(dx, dx[0]) and np.allclose(dy, dy[0])) or dx[0] <= 0 or dy[0] <= 0:
         raise MarkcalError("an A3200 table needs evenly spaced ascending positions along both axes")
     cx, cy = -sign * np.asarray(error_x_um), -sign * np.asarray(error_y_um)
+    check_range(np.r_[cx.ravel(), cy.ravel()], -A3200_MAX_UM, A3200_MAX_UM, "A3200 entry", "µm")
+    check_range(np.r_[x_mm, y_mm], -1e4, 1e4, "A3200 position", "mm")
     lines = [f":START2D {ax2} {ax1} {ax1} {ax2} {dy[0]:.6f} {dx[0]:.6f} {len(x_mm)}",
              f":START2D POSUNIT=METRIC CORUNIT=METRIC/1000 OFFSETROW={y_mm[0]:.6f} OFFSETCOL={x_mm[0]:.6f}"]
     for iy in range(len(y_mm)):

@@ -67,3 +67,13 @@ def test_huge_declared_tiff_refused_before_decoding(tmp_path, capsys):
         image_io.MAX_IMAGE_PIXELS = old
     err = _err(capsys)
     assert len(err) == 1 and "2000 x 2000" in err[0] and "at most" in err[0], err
+
+
+def test_batch_nan_option_refused(tmp_path, capsys):
+    d = tmp_path / "in"
+    d.mkdir()
+    cfg = tmp_path / "b.toml"
+    cfg.write_text("[path]\njump_speed_mm_s = nan\n")
+    assert main(["batch", str(d), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"]) == 1
+    err = _err(capsys)
+    assert len(err) == 1 and "finite number" in err[0] and str(cfg) in err[0], err

@@ -20,6 +20,8 @@ from markcal.stages.errors import MarkcalError
 __all__ = ["DriftResult", "read_drift", "run_drift", "DEFAULT_METHOD"]
 
 DEFAULT_METHOD = "kalman"
+#: the largest noise of one drift sample accepted (µm): beyond it the filters' variances overflow
+NOISE_MAX_UM = 1e4
 
 
 @dataclass(frozen=True)
@@ -53,8 +55,8 @@ def run_drift(path, method: str = DEFAULT_METHOD, truth_path=None, noise_um: flo
         raise MarkcalError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
     if not (0 < alpha < 1):
         raise MarkcalError(f"--alpha must be in (0, 1) (got {alpha})")
-    if not noise_um > 0:
-        raise MarkcalError(f"--noise-um must be positive (got {noise_um})")
+    if not 0 < noise_um <= NOISE_MAX_UM:
+        raise MarkcalError(f"--noise-um must be positive and at most {NOISE_MAX_UM:g} µm (got {noise_um})")
     t, m = read_drift(path)
     tt = tu = None
     if truth_path is not None:

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from markcal.pipeline.tables import read_table
+from markcal.pipeline.tables import load_json, read_input_bytes, read_table
 from markcal.stages import table_formats as fmt
 from markcal.stages.ctable import TableStructure, check_interpolation, centred_nodes, sample_onto_nodes, table_structure
 from markcal.stages.errors import MarkcalError
@@ -49,6 +49,10 @@ class StageSource:
     gy_um: np.ndarray
 
 
+#: the widest lens field accepted (mm)
+MAX_LENS_MM = 5000.0
+
+
 def _need(folder, name, what):
     p = os.path.join(folder, name)
     if not os.path.exists(p):
@@ -62,11 +66,7 @@ def _load_galvo_model(path) -> tuple:
     The scan flow writes an RBF network; the grid flow a ``markcal-grid-model-1``
     model valid over the whole lens field.
     """
-    try:
-        with open(path, encoding="utf-8") as fh:
-            doc = json.load(fh)
-    except (OSError, ValueError) as exc:
-        raise MarkcalError(f"cannot read model: {exc}", path) from None
+    doc = load_json(path, "model file")
     if isinstance(doc, dict) and isinstance(doc.get("model"), dict) and doc["model"].get("format") == "markcal-grid-model-1":
         from markcal.stages.galvo_fit import GridModel
         try:
@@ -116,7 +116,15 @@ def _galvo_table(src: ScanSource, units_per_mm: float, spacing: float, allow_ext
     return s, err
 
 
-def export_table(name: str, folder, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
+def export_table(name: str, folder, **kw) -> tuple:
+    """See :func:`_export_table`; every refusal names the source folder when it names no file."""
+    try:
+        return _export_table(name, folder, **kw)
+    except MarkcalError as exc:
+        raise exc.with_path(folder) from None
+
+
+def _export_table(name: str, folder, *, lens_mm: float | None = None, cor: fmt.CorOptions = fmt.CorOptions(),
                  ctb: fmt.CtbOptions = fmt.CtbOptions(), rtc4: bool = False, fill_missing: bool = False,
                  ax1: int = 1, ax2: int = 2, sign: float = 1.0, allow_extrapolation: bool = False) -> tuple:
     """Build the bytes of a controller table from a flow result folder.
@@ -137,8 +145,9 @@ def export_table(name: str, folder, *, lens_mm: float | None = None, cor: fmt.Co
         return text.encode("ascii"), {"nodes": f"{len(st.x_mm)} x {len(st.y_mm)}",
                                       "step_mm": float(st.x_mm[1] - st.x_mm[0]),
                                       "max_correction_um": float(np.nanmax(np.hypot(st.gx_um, st.gy_um)))}
-    if lens_mm is None or not lens_mm > 0:
-        raise MarkcalError(f"--lens-mm (the lens field size, mm) is needed for {name} and must be positive")
+    if lens_mm is None or not 0 < lens_mm <= MAX_LENS_MM:
+        raise MarkcalError(f"--lens-mm (the lens field size, mm) is needed for {name} and must be positive and at "
+                           f"most {MAX_LENS_MM:g} mm (got {lens_mm})")
     src = load_scan_source(folder)
     if name == "correxion":
         if src.kind == "validation":
@@ -302,11 +311,5 @@ def inspect_table(path, *, lens_mm: float | None = None, cor: fmt.CorOptions = f
                   ctb: fmt.CtbOptions = fmt.CtbOptions(), sign: float = 1.0) -> Inspected:
     """Read any supported table file back into node vectors, with its structural check."""
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            data = fh.read()
-    except FileNotFoundError:
-        raise MarkcalError("no such file", path) from None
-    except OSError as exc:
-        raise MarkcalError(f"cannot read ({exc})", path) from None
+    data = read_input_bytes(path, "table")
     return inspect_bytes(data, path, lens_mm=lens_mm, cor=cor, ctb=ctb, sign=sign)

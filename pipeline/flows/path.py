@@ -10,6 +10,7 @@ strokes are ordered inside each layer / group only, the groups in input order.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import os
 import time
@@ -18,11 +19,13 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
+from markcal.pipeline.tables import load_json
 from markcal.stages.errors import MarkcalError
+from markcal.stages.limits import check_text_ends, max_abs_for
 from markcal.stages.job_formats import JobFile
 from markcal.stages.path_ga import GAOptions, GAResult, run_ga
-from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_tour, duplicate_groups, \
-    input_tour, make_job, tour_stats
+from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_number_leaves, check_tour, \
+    duplicate_groups, input_tour, make_job, tour_stats
 from markcal.stages.path_layers import join_group_tours, split_groups
 from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, n_kicks_for, \
     nearest_neighbour_tour, raster_tour
@@ -89,17 +92,9 @@ class PathResult:
 # ----------------------------------------------------------------------------- reading
 
 def _read_json(path) -> PathInput:
-    try:
-        with open(path, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as exc:
-        raise MarkcalError(f"cannot read job ({exc.strerror})", path) from None
-    if not text.strip():
+    if os.path.isfile(path) and os.path.getsize(path) == 0:
         raise MarkcalError("empty file: the job has no strokes", path)
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise MarkcalError(f"not valid JSON ({exc.msg}, line {exc.lineno})", path) from None
+    doc = load_json(path, "job file")
     if not isinstance(doc, dict) or "strokes" not in doc:
         raise MarkcalError('a JSON job is an object with a "strokes" list', path)
     unknown = sorted(set(doc) - JOB_KEYS)
@@ -119,6 +114,7 @@ def _read_json(path) -> PathInput:
         if kind is None:
             raise MarkcalError(f"stroke {i}: unknown kind {s['kind']!r} (point, polyline or contour)", path)
         xy = s["xy_mm"]
+        check_number_leaves(xy, f"stroke {i} ({kind}) xy_mm", path)
         try:
             xy = np.array(xy, dtype=float)
         except (TypeError, ValueError):
@@ -135,7 +131,9 @@ def _read_json(path) -> PathInput:
 def _read_csv(path) -> PathInput:
     try:
         with open(path, encoding="utf-8", newline="") as fh:
-            rows = list(csv.reader(fh))
+            text = fh.read()
+        check_text_ends(text, path)
+        rows = list(csv.reader(io.StringIO(text)))
     except OSError as exc:
         raise MarkcalError(f"cannot read job ({exc.strerror})", path) from None
     except UnicodeDecodeError:
@@ -160,6 +158,9 @@ def _read_csv(path) -> PathInput:
             raise MarkcalError(f"row {k + 2}: x_mm, y_mm must be numbers ({r[ix]!r}, {r[iy]!r})", path) from None
         if not np.all(np.isfinite(xy[k])):
             raise MarkcalError(f"row {k + 2} (point {k}): NaN or infinite coordinate", path)
+        if np.abs(xy[k]).max() > max_abs_for("x_mm"):
+            raise MarkcalError(f"row {k + 2} (point {k}): coordinate {np.abs(xy[k]).max():g} mm beyond the "
+                               f"physical limit ±{max_abs_for('x_mm'):g} mm", path)
     job = make_job([("point", p) for p in xy], path)
     return JobFile(job, "csv", ("",) * job.n, {}, (), (header, body))
 
@@ -393,7 +394,7 @@ def _claims(path) -> bool:
     try:
         with open(path, encoding="utf-8") as fh:
             d = json.load(fh)
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(d, dict) and "strokes" in d
 

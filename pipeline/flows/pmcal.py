@@ -11,7 +11,6 @@ commands with a calibration.
 from __future__ import annotations
 
 import csv
-import json
 import os
 import time
 from dataclasses import dataclass
@@ -19,10 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor
-from markcal.pipeline.tables import check_increasing, read_table
+from markcal.pipeline.tables import check_increasing, load_json, read_table
 from markcal.stages import indent as ind
 from markcal.stages.image_io import read_image
 from markcal.stages.errors import MarkcalError
+from markcal.stages.limits import max_abs_for
 from markcal.stages.pm_fit import SessionData, fit_lsq, model_from_theta, residual_parts, terms_from_parts
 from markcal.stages.pm_ga import GAOptions, run_ga
 from markcal.stages.pm_model import PMModel, command_for_targets, landing_errors, model_from_dict, model_to_dict
@@ -285,9 +285,8 @@ def _read_truth(folder):
     p = os.path.join(folder, "truth.json")
     if not os.path.isfile(p):
         return None, None
+    truth = load_json(p, "truth file")
     try:
-        with open(p, encoding="utf-8") as fh:
-            truth = json.load(fh)
         return truth, model_from_dict(truth)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise MarkcalError(f"cannot read truth ({exc})", p) from None
@@ -350,13 +349,7 @@ def run_pmcal(folder, method: str = "ga+lsq", seed: int = 0, progress=None) -> P
 
 def read_calibration(path) -> tuple:
     """calibration.json -> (PMModel, dict)."""
-    try:
-        with open(path, encoding="utf-8") as fh:
-            d = json.load(fh)
-    except FileNotFoundError:
-        raise MarkcalError("no such file", path) from None
-    except (OSError, ValueError) as exc:
-        raise MarkcalError(f"cannot read as JSON ({exc})", path) from None
+    d = load_json(path, "calibration file")
     try:
         return model_from_dict(d), d
     except (KeyError, ValueError, TypeError) as exc:
@@ -365,8 +358,8 @@ def read_calibration(path) -> tuple:
 
 def run_command(calibration_path, targets_path, depth_um: float) -> dict:
     """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv."""
-    if not np.isfinite(depth_um):
-        raise MarkcalError(f"--depth-um must be a finite number (got {depth_um})")
+    if not abs(depth_um) <= max_abs_for("depth_um"):
+        raise MarkcalError(f"--depth-um must be a finite number within ±{max_abs_for('depth_um'):g} µm (got {depth_um})")
     model, _ = read_calibration(calibration_path)
     t = read_table(targets_path, ("x_um", "y_um"))
     xy = np.column_stack([t["x_um"], t["y_um"]])
