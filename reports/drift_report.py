@@ -60,4 +60,4 @@ def drift_report_html(result: DriftResult) -> str:
     parts.append("<p>The paper (Table 2) reports η = 76 % (X/Y) and 78 % (Z) for its filter (α = 0.8).</p>")
     parts.append(_curves(result))
     parts.append(data_files_footer(DATA_FILES))
-    return page("markcal drift: online drift compensation", parts, source=result.source)
+    return page("markcal drift: online drift compensation", parts, source=result.source, summary=s)

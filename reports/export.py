@@ -52,12 +52,13 @@ def export_note_rows(t, facts: dict) -> list:
     return rows
 
 
-def write_export(out: str, data: bytes, t, facts: dict, report: bool = True) -> str | None:
-    """Write the table and, unless ``report`` is false, its note; return the note's path."""
+def write_export(out: str, data: bytes, t, facts: dict, report: bool = True, provenance: dict | None = None) -> str | None:
+    """Write the table and, unless ``report`` is false, its note (headed by ``provenance``); return the note's path."""
     atomic_write_bytes(out, data)
     if not report:
         return None
     path = note_path(out)
     atomic_write_text(path, table_report_html(t, title=f"markcal export — {t.format} table",
-                                                     note_rows=export_note_rows(t, facts)))
+                                                     note_rows=export_note_rows(t, facts),
+                                                     provenance=provenance))
     return path

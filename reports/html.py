@@ -11,7 +11,8 @@ import io
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner", "arrow_key"]
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner",
+           "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
 
@@ -85,6 +86,19 @@ def nice_number(x: float) -> float:
     return float(10 ** k)
 
 
+def arrow_scale(pitch: float, max_len: float) -> float:
+    """Magnification (1, 2 or 5 × 10^k, the nearest) making the longest arrow about ⅓ of ``pitch``.
+
+    ``pitch`` is in plot units, ``max_len`` in arrow units; 1 when there is no arrow to draw.
+    """
+    if not (np.isfinite(max_len) and max_len > 0 and np.isfinite(pitch) and pitch > 0):
+        return 1.0
+    x = pitch / (3.0 * max_len)
+    k = np.floor(np.log10(x))
+    cands = [m * 10.0 ** (k + e) for e in (-1, 0, 1) for m in (1.0, 2.0, 5.0)]
+    return float(min(cands, key=lambda c: abs(np.log(c / x))))
+
+
 def new_figure(w_in: float, h_in: float):
     """A matplotlib Figure on an Agg canvas, ``w_in`` x ``h_in`` inches (matplotlib loads on first use)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -155,15 +169,10 @@ def _check_rows(summary: dict) -> list:
     return rows
 
 
-def verdict_banner(summary: dict) -> str:
-    """PASS / FAIL / NO TOLERANCE in large type with the checks, then the provenance line ("" without a verdict)."""
-    status = summary.get("verdict")
-    if not status:
+def provenance_line(summary: dict) -> str:
+    """The provenance line of a report (version, date, context, inputs with SHA-256, command); "" without one."""
+    if not summary.get("markcal_version"):
         return ""
-    cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
-    rows = _check_rows(summary)
-    checks = table(["figure", "value", "limit", ""], rows) if rows else \
-        "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
     prov = [f"markcal {esc(summary.get('markcal_version', '?'))}", esc(summary.get("date_utc", ""))]
     for k in ("machine", "lens", "operator", "note"):
         if summary.get(k):
@@ -176,8 +185,23 @@ def verdict_banner(summary: dict) -> str:
         prov.append(f"command <code>{esc(summary['command'])}</code>")
     if summary.get("batch_index"):
         prov.append(f'<a href="{esc(summary["batch_index"])}">back to the batch index</a>')
+    return f'<div class="prov">{" · ".join(prov)}</div>'
+
+
+def verdict_banner(summary: dict) -> str:
+    """PASS / FAIL / NO TOLERANCE in large type with the checks, then the provenance line.
+
+    Without a verdict (a flow judged against the paper, not a tolerance), only the provenance line.
+    """
+    status = summary.get("verdict")
+    if not status:
+        return provenance_line(summary)
+    cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
+    rows = _check_rows(summary)
+    checks = table(["figure", "value", "limit", ""], rows) if rows else \
+        "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
     return (f'<div class="banner {cls}" id="verdict"><span class="big">{esc(status.upper())}</span>{checks}</div>'
-            f'<div class="prov">{" · ".join(prov)}</div>')
+            + provenance_line(summary))
 
 
 def page(title: str, body_parts, source: str | None = None, summary: dict | None = None) -> str:

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.pipeline.flows.pmcal import COMPARED, PmcalResult
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.pm_model import model_to_dict
 
@@ -46,9 +46,14 @@ def _residuals(result: PmcalResult) -> str:
     ax.set_title("axis trajectories")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(132)
-    q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0], rp[:, 1], color="#c0392b")
-    key_um = nice_number(0.6 * max(float(np.hypot(rp[:, 0], rp[:, 1]).max()), 1e-12))
-    arrow_key(ax, q, key_um, f"{key_um * 1e3:g} nm")
+    px_mm = np.unique(np.round(d.c_pose[:, 0] / 1000, 6))
+    pitch_mm = float(np.median(np.diff(px_mm))) if len(px_mm) > 1 else 1.0
+    rmax_um = float(np.hypot(rp[:, 0], rp[:, 1]).max())
+    k = arrow_scale(pitch_mm, rmax_um)          # mm drawn per µm of residual
+    q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0] * k, rp[:, 1] * k, angles="xy",
+                  scale_units="xy", scale=1, color="#c0392b", width=0.006)
+    key_um = nice_number(0.6 * max(rmax_um, 1e-12))
+    arrow_key(ax, q, key_um * k, f"{key_um * 1e3:g} nm")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_title("pose pairs: XY residual")

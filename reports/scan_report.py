@@ -17,7 +17,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -39,10 +39,8 @@ DATA_FILES = (
 AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
 
 def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
-    """Magnification making the longest arrow about 0.8 of a pitch."""
-    if not np.isfinite(max_len_mm) or max_len_mm <= 0:
-        return 1.0
-    return nice_number(0.8 * pitch_mm / max_len_mm)
+    """Magnification making the longest arrow about ⅓ of a pitch."""
+    return arrow_scale(pitch_mm, max_len_mm)
 
 
 def _rowcol(fid_id: int, cols: int) -> tuple:
@@ -279,7 +277,7 @@ def _field_figure(result) -> str:
     cb = fig.colorbar(im, ax=ax, pad=0.02, shrink=0.9)
     cb.set_label("|command offset| (mm)")
     mmax = float(np.nanmax(mag)) if len(mag) else 0.0
-    k = nice_number(0.9 * step / mmax) if mmax > 0 else 1.0
+    k = arrow_scale(step, mmax)
     q = ax.quiver(xy[pick, 0], xy[pick, 1], d[pick, 0], d[pick, 1], angles="xy", scale_units="xy",
                   scale=1.0 / k, color="white", edgecolor="black", linewidth=0.3, width=0.004)
     key = nice_number(0.6 * mmax) if mmax > 0 else 0.1

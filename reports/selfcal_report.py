@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.selfcal import site_xy_mm
 
@@ -32,7 +32,7 @@ def _quiver(result) -> str:
     sol = result.solution
     x, y = _grid(result)
     mag = np.hypot(sol.gx_um, sol.gy_um)
-    scale_mm_per_um = nice_number(0.8 * result.setup.pitch_mm / max(float(mag.max()), 1e-12))
+    scale_mm_per_um = arrow_scale(result.setup.pitch_mm, float(mag.max()))
     fig = new_figure(6.4, 6.0)
     ax = fig.add_subplot(111)
     ax.plot(x, y, ".", color="#999", ms=3)

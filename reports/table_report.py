@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import arrow_key, esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import arrow_key, arrow_scale, esc, img, new_figure, nice_number, num, page, png_b64, table
 
 __all__ = ["table_report_html", "structure_rows"]
 
@@ -15,7 +15,7 @@ def _figure(t) -> str:
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(np.hypot(t.u, t.v).max())
-    k = nice_number(0.8 * pitch / vmax) if vmax > 0 else 1.0
+    k = arrow_scale(pitch, vmax)
     q = ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
                   angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
     key = nice_number(0.6 * vmax) if vmax > 0 else 1.0
@@ -62,11 +62,11 @@ def structure_rows(t) -> list:
     return rows
 
 
-def table_report_html(t, title: str | None = None, note_rows: list | None = None) -> str:
+def table_report_html(t, title: str | None = None, note_rows: list | None = None, provenance: dict | None = None) -> str:
     """One self-contained page for an :class:`~markcal.pipeline.flows.export.Inspected` table.
 
     ``note_rows`` (the export note) come first when given; structural warnings
-    are shown at the top in red.
+    are shown at the top in red; ``provenance`` (version, date, command, inputs) heads the page.
     """
     mag = np.hypot(t.u, t.v)
     parts = [f'<div class="note">{esc(w)}</div>' for w in t.warnings]
@@ -82,4 +82,4 @@ def table_report_html(t, title: str | None = None, note_rows: list | None = None
               table(["", ""], [[esc(a), esc(b)] for a, b in structure_rows(t)]), "<h2>Field</h2>", _figure(t),
               "<p>What the public sources leave open about the format (node spacing, index order, sign) is "
               "read with the options shown above; see the README, section “Correction tables”.</p>"]
-    return page(title or f"markcal inspect — {t.format} table", parts, source=t.path)
+    return page(title or f"markcal inspect — {t.format} table", parts, source=t.path, summary=provenance)
