@@ -88,7 +88,7 @@ def cmd_render_servo_log(args) -> int:
 
     say = progress(args.quiet)
     opts = LogOptions(kind=args.kind, n_moves=args.moves, stroke_mm=args.stroke_mm, hold_s=args.hold_s,
-                      ts_s=args.ts_ms * 1e-3, fn_hz=args.fn_hz, zeta=args.zeta, dc_gain=args.dc_gain,
+                      ts_s=args.sample_period_ms * 1e-3, fn_hz=args.fn_hz, zeta=args.zeta, dc_gain=args.dc_gain,
                       amplitude_mm=args.amplitude_mm, frequency_hz=args.frequency_hz, periods=args.periods,
                       noise_nm=args.noise_um * 1e3, jitter=args.jitter, time_unit=args.time_unit, pos_unit=args.pos_unit,
                       counts_per_mm=args.counts_per_mm, layout=args.layout, band_um=args.settle_band_um,
@@ -152,7 +152,8 @@ def register(sub, render_sub) -> None:
     rl.add_argument("--lines", type=int, default=0, help="fill this many lines instead (e.g. 1000000)")
     rl.add_argument("--stroke-mm", type=float, default=1.0)
     rl.add_argument("--hold-s", type=float, default=0.2, help="time between steps, s")
-    rl.add_argument("--ts-ms", type=float, default=0.1, help="sample step, ms")
+    rl.add_argument("--sample-period-ms", type=float, default=0.1, help="sample period, ms")
+    add_alias(rl, "--ts-ms", "--sample-period-ms")
     rl.add_argument("--fn-hz", type=float, default=40.0, help="natural frequency of the stage loop, Hz")
     rl.add_argument("--zeta", type=float, default=0.4, help="damping ratio")
     rl.add_argument("--dc-gain", type=float, default=1.0, help="static gain K (steady-state error (1 - K) x target)")

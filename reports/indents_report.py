@@ -41,15 +41,19 @@ def _maps(files):
             fig.colorbar(im, ax=ax, label="height (nm)")
         else:
             ax.imshow(f.image, cmap="gray", extent=_extent(f))
-        for m, i in zip(f.imprints, f.table["id"]):
+        good_col = "cyan" if f.kind == "afm" else "#1565c0"      # cyan vanishes on a light micrograph
+        flags = f.table.get("in_tolerance", [1] * len(f.imprints))
+        for m, i, ok in zip(f.imprints, f.table["id"], flags):
             c = np.vstack([m.corners_um, m.corners_um[:1]])
-            ax.plot(c[:, 0], c[:, 1], "-", color="cyan", lw=0.8)
-            ax.text(m.x_um, m.y_um - 0.8 * m.diameter_um, str(int(i)), color="cyan", fontsize=6, ha="center")
+            ax.plot(c[:, 0], c[:, 1], "-", color=good_col if ok else "#d9342b", lw=0.8 if ok else 1.4)
+            ax.annotate(str(int(i)), (m.x_um, m.y_um), xytext=(0, 6), textcoords="offset points", ha="center",
+                        va="bottom", fontsize=6, color="k" if ok else "#d9342b",
+                        bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.75))
         ax.set_xlabel("x (µm)")
         ax.set_ylabel("y (µm)")
         what = "levelled AFM height map" if f.kind == "afm" else "micrograph / illumination"
         parts.append(img(png_b64(fig), f.source, f"<code>{esc(os.path.basename(f.source))}</code>: {what} with "
-                         "the fitted outlines (corners from the facet planes) and imprint ids."))
+                         "the fitted outlines (corners from the facet planes) and imprint ids; red: out of tolerance."))
     return "".join(parts)
 
 
@@ -137,13 +141,15 @@ def _positions(res):
 
 
 def _gallery(files):
-    items = [(f, m, i) for f in files for m, i in zip(f.imprints, f.table["id"])][:MAX_GALLERY]
+    items = [(f, m, i, ok) for f in files
+             for m, i, ok in zip(f.imprints, f.table["id"], f.table.get("in_tolerance", [1] * len(f.imprints)))
+             ][:MAX_GALLERY]
     if not items:
         return ""
     ncol = 10
     nrow = int(np.ceil(len(items) / ncol))
     fig = new_figure(11, 1.15 * nrow + 0.3)
-    for j, (f, m, i) in enumerate(items):
+    for j, (f, m, i, ok) in enumerate(items):
         ax = fig.add_subplot(nrow, ncol, j + 1)
         z, ext, _ = _crop(f, m)
         ax.imshow(z, cmap="afmhot" if f.kind == "afm" else "gray", extent=ext)
@@ -156,10 +162,15 @@ def _gallery(files):
         ax.set_ylim(ext[2], ext[3])
         ax.set_xticks([])
         ax.set_yticks([])
-        ax.set_title(f"{int(i)}: {m.diameter_um:.2f}", fontsize=6)
+        ax.set_title(f"{int(i)}: {m.diameter_um:.2f} µm", fontsize=6, color="k" if ok else "#d9342b",
+                     fontweight="normal" if ok else "bold")
+        if not ok:                      # out of tolerance: a red frame
+            for sp in ax.spines.values():
+                sp.set_edgecolor("#d9342b")
+                sp.set_linewidth(2)
     more = sum(len(f.imprints) for f in files) - len(items)
     cap = ("Every imprint with its fitted outline (cyan: corners joined; green dashed: circle through the corners, "
-           "paper Fig. 6b); title: id and diameter (µm).") + (f" {more} more not shown." if more > 0 else "")
+           "paper Fig. 6b); title: id and diameter. Red title and frame: out of tolerance (diameter or H/D).") + (f" {more} more not shown." if more > 0 else "")
     return img(png_b64(fig), "gallery", cap)
 
 

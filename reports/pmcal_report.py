@@ -46,8 +46,8 @@ def _residuals(result: PmcalResult) -> str:
     ax.set_title("axis trajectories")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(132)
-    px_mm = np.unique(np.round(d.c_pose[:, 0] / 1000, 6))
-    pitch_mm = float(np.median(np.diff(px_mm))) if len(px_mm) > 1 else 1.0
+    span_mm = np.ptp(d.c_pose[:, :2], axis=0) / 1000                   # marks spread over the field: mean spacing
+    pitch_mm = float(np.sqrt(max(span_mm[0] * span_mm[1], 1e-12) / max(len(d.c_pose) - 1, 1))) or 1.0
     rmax_um = float(np.hypot(rp[:, 0], rp[:, 1]).max())
     k = arrow_scale(pitch_mm, rmax_um)          # mm drawn per µm of residual
     q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0] * k, rp[:, 1] * k, angles="xy",

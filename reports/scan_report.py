@@ -227,11 +227,16 @@ def _cv_figure(sel) -> str:
     goals = np.asarray(sel.goals_mm2, float)
     fig = new_figure(7.4, 0.45 * len(spreads) + 1.6)
     ax = fig.add_subplot(111)
-    good = cv_table[np.isfinite(cv_table) & (cv_table > 0)]
+    cv_um = cv_table * 1000.0                     # the cell numbers and the colour bar in the same unit
+    good = cv_um[np.isfinite(cv_um) & (cv_um > 0)]
     norm = LogNorm(vmin=good.min(), vmax=good.max()) if len(good) and good.max() > good.min() else None
-    im = ax.imshow(cv_table, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
+    im = ax.imshow(cv_um, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
     cb = fig.colorbar(im, ax=ax, pad=0.02)
-    cb.set_label("mean CV RMSE (mm)")
+    cb.set_label("mean CV RMSE (µm)")
+    from matplotlib.ticker import LogLocator, StrMethodFormatter
+    cb.ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    cb.ax.yaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
+    cb.ax.yaxis.set_minor_formatter(StrMethodFormatter(""))
     ax.set_xticks(range(len(goals)))
     ax.set_xticklabels([f"{g:.0e}" for g in goals], rotation=35, ha="right", fontsize=8)
     ax.set_yticks(range(len(spreads)))
@@ -240,11 +245,11 @@ def _cv_figure(sel) -> str:
     ax.set_ylabel("spread σ (mm)")
     if len(good):
         thr = np.sqrt(good.min() * good.max())
-        for i in range(cv_table.shape[0]):
-            for j in range(cv_table.shape[1]):
-                v = cv_table[i, j]
+        for i in range(cv_um.shape[0]):
+            for j in range(cv_um.shape[1]):
+                v = cv_um[i, j]
                 if np.isfinite(v):
-                    ax.text(j, i, f"{v * 1000:.1f}", ha="center", va="center", fontsize=7,
+                    ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7,
                             color="white" if v > thr else "black")
     bi = int(np.argmin(np.abs(spreads - sel.spread_mm)))
     bj = int(np.argmin(np.abs(np.log(goals) - np.log(sel.mse_goal_mm2))))

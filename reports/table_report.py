@@ -18,12 +18,12 @@ def _figure(t) -> str:
     k = arrow_scale(pitch, vmax)
     q = ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
                   angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
-    key = nice_number(0.6 * vmax) if vmax > 0 else 1.0
+    key = nice_number(vmax) if vmax > 0 else 1.0
     arrow_key(ax, q, key * k, f"{key:g} {t.unit}")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
-    ax.set_title(f"{t.what}, arrows × {k:g} (mm per {t.unit})", fontsize=9)
+    ax.set_title(f"{t.what}\narrows: 1 {t.unit} drawn as {k:g} mm", fontsize=9)
     dx = float(np.diff(t.x_mm).mean()) / 2 if len(t.x_mm) > 1 else 0.5
     dy = float(np.diff(t.y_mm).mean()) / 2 if len(t.y_mm) > 1 else 0.5
     extent = [t.x_mm[0] - dx, t.x_mm[-1] + dx, t.y_mm[0] - dy, t.y_mm[-1] + dy]

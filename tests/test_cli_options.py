@@ -13,6 +13,8 @@ ALIASES = [
     (["render", "servo-log", "--out", "o"], "--noise-um", "--noise-nm", "7", "noise_um", 0.007),
     (["render", "servo-log", "--out", "o"], "--settle-band-um", "--band-um", "3", "settle_band_um", 3.0),
     (["render", "grid", "--out", "o"], "--noise-um", "--noise-mm", "0.01", "noise_um", 10.0),
+    (["render", "grid", "--out", "o"], "--missing-marks", "--missing", "3", "missing_marks", 3),
+    (["render", "servo-log", "--out", "o"], "--sample-period-ms", "--ts-ms", "0.2", "sample_period_ms", 0.2),
     (["path", "job.csv", "--out", "o"], "--chord-tolerance-mm", "--tolerance-mm", "0.02", "tolerance_mm", 0.02),
 ]
 
