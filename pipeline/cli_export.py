@@ -25,7 +25,7 @@ def cmd_export(args) -> int:
     from markcal.pipeline.cli_common import context_of
     from markcal.pipeline.flows.export import export_table, inspect_bytes
     from markcal.pipeline.registry import provenance
-    from markcal.reports.export import write_export
+    from markcal.reports.export import FACT_LABELS, write_export
     from markcal.stages.errors import MarkcalError
     from markcal.stages.table_formats import FORMATS
 
@@ -36,6 +36,7 @@ def cmd_export(args) -> int:
     if not args.format or not args.source or not args.out:
         raise MarkcalError("usage: markcal export FORMAT RESULT_DIR --out FILE (markcal export --list names the formats)")
     say = progress(args.quiet)
+    say(f"writing a {args.format} table from {args.source}")
     cor, ctb = _cor_ctb_options(args)
     data, facts = export_table(args.format, args.source, lens_mm=args.lens_mm, cor=cor, ctb=ctb, rtc4=args.rtc4,
                                fill_missing=args.fill_missing, ax1=args.ax1, ax2=args.ax2, sign=args.sign,
@@ -45,7 +46,8 @@ def cmd_export(args) -> int:
                         provenance=provenance(args.source, context=context_of(args)))
     _warn(t)
     say(t.layout)
-    say(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in facts.items()))
+    say(", ".join(f"{FACT_LABELS.get(k, k)} {v:.4g}" if isinstance(v, float) else f"{FACT_LABELS.get(k, k)} {v}"
+                  for k, v in facts.items()))
     if facts.get("extrapolated_nodes"):
         say(f"note: {facts['extrapolated_nodes']} nodes lie outside the measured plate and carry the value at "
             "its nearest edge")

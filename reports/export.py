@@ -19,6 +19,15 @@ def note_path(table_path: str) -> str:
     return str(table_path) + ".html"
 
 
+#: human labels of the facts ``export_table`` reports (a key not listed keeps its name, without underscores)
+FACT_LABELS = {"units_per_mm": "scale (galvo units per mm)",
+               "extrapolated_nodes": "nodes outside the measured plate (value at its nearest edge)",
+               "max_entry_units": "largest entry (galvo units)",
+               "interpolation_error_units": "interpolation error at the fiducials (galvo units)",
+               "bits_per_mm": "scale (bits per mm)", "grid": "grid points", "filled_points": "points filled from the model",
+               "nodes": "nodes", "step_mm": "node step (mm)", "max_correction_um": "largest correction (µm)"}
+
+
 def _fmt(v) -> str:
     return f"{v:.6g}" if isinstance(v, float) else str(v)
 
@@ -48,7 +57,7 @@ def export_note_rows(t, facts: dict) -> list:
         rows.append(["sign", "measured landing positions of the points commanded at the nominal grid"])
     rows += [[f"range: {k}", _fmt(v)] for k, v in t.facts.items()
              if any(w in k for w in ("values", "table (", "deviation", "corrections"))]
-    rows += [[k.replace("_", " "), _fmt(v)] for k, v in facts.items()]
+    rows += [[FACT_LABELS.get(k, k.replace("_", " ")), _fmt(v)] for k, v in facts.items()]
     return rows
 
 

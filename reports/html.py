@@ -112,9 +112,16 @@ def arrow_key(ax, q, length: float, label: str) -> None:
     """Draw the key arrow of quiver ``q`` inside ``ax`` (lower right, on a white box).
 
     ``length`` is in the units of the arrows as passed to ``quiver``; ``label`` says what it means
-    in real units. Inside the axes, the key survives the tight cropping of :func:`png_b64`.
+    in real units. Inside the axes, the key survives the tight cropping of :func:`png_b64`; the y range
+    is extended downwards so that the key's box sits below the data instead of over it.
     """
     from matplotlib.patches import Rectangle
+    ax.autoscale_view()
+    y0, y1 = ax.get_ylim()
+    if y1 > y0:                                   # an upward y axis: room at the bottom for the key
+        ax.set_ylim(y0 - 0.13 * (y1 - y0), y1)
+    else:                                         # image-like (inverted) axis: the bottom is the larger value
+        ax.set_ylim(y0 + 0.13 * (y0 - y1), y1)
     ax.add_patch(Rectangle((0.60, 0.01), 0.385, 0.08, transform=ax.transAxes, facecolor="white", edgecolor="0.55",
                            alpha=0.92, zorder=5))
     key = ax.quiverkey(q, 0.90, 0.05, length, label, labelpos="W", coordinates="axes", color="k",
@@ -141,7 +148,8 @@ def table(header, rows, left_cols: int = 1) -> str:
     h = "".join(f'<th class="{"l" if i < left_cols else ""}">{c}</th>' for i, c in enumerate(header))
     body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left_cols else ""}">{c}</td>'
                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+    head = f"<tr>{h}</tr>" if any(str(c) for c in header) else ""     # no empty grey header bar
+    return f"<table>{head}{body}</table>"
 
 
 def data_files_footer(files) -> str:

@@ -195,6 +195,7 @@ def indents_report_html(res) -> str:
             ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
             ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
+    rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
     from .indent_single_report import single_section
     parts.append(single_section(res.files))
@@ -209,23 +210,25 @@ def indents_report_html(res) -> str:
     if len(bad):
         items = "".join(f"<li><code>{esc(t['file'][i])}</code> #{int(t['id'][i])}: diameter "
                         f"{num(t['diameter_um'][i], 'µm')} (nominal {num(t['nominal_um'][i], 'µm')}, error "
-                        f"{1000 * err[i]:+.0f} nm), H/D {num(t['hd_ratio'][i], '')}</li>" for i in bad[:50])
+                        f"{1000 * err[i]:+.0f} nm)" + (f", H/D {num(t['hd_ratio'][i], '')}" if np.isfinite(t['hd_ratio'][i]) else "")
+                        + "</li>" for i in bad[:50])
         parts.append(f'<div class="warn"><b>{len(bad)} imprint(s) outside the tolerance '
                      f'±{s["tolerance_um"] * 1000:.0f} nm '
                      f"or with H/D &lt; {s['min_hd']}</b><ul>{items}</ul></div>")
     parts.append("<h2>Per-size statistics (paper Table 1)</h2>")
     z = res.sizes
-    parts.append(table(["nominal size", "N", "mean diameter", "σ diameter", "max |error|", "mean H/D", "σ H/D",
-                        "mean depth"],
-                       [[num(z["nominal_um"][i], "µm"), num(z["n"][i], ""), num(z["mean_diameter_um"][i], "µm"),
-                         num(z["sd_diameter_um"][i], "µm"), num(z["max_abs_error_um"][i], "µm"),
-                         num(z["mean_hd"][i], ""), num(z["sd_hd"][i], ""), num(z["mean_depth_nm"][i], "nm")]
-                        for i in range(len(z["n"]))]))
+    head = ["nominal size", "N", "mean diameter", "σ diameter", "max |error|", "mean H/D", "σ H/D", "mean depth"]
+    body = [[num(z["nominal_um"][i], "µm"), num(z["n"][i], ""), num(z["mean_diameter_um"][i], "µm"),
+             num(z["sd_diameter_um"][i], "µm"), num(z["max_abs_error_um"][i], "µm"),
+             num(z["mean_hd"][i], ""), num(z["sd_hd"][i], ""), num(z["mean_depth_nm"][i], "nm")]
+            for i in range(len(z["n"]))]
+    keep = [j for j in range(len(head)) if any(r[j] != "–" for r in body)] or list(range(len(head)))
+    parts.append(table([head[j] for j in keep], [[r[j] for j in keep] for r in body]))   # no all-"–" columns
     parts.append("<h2>Maps</h2>")
     parts.append(_maps(res.files))
-    parts.append("<h2>One imprint in 3D and profiles</h2>")
-    parts.append(_render3d(res.files))
-    parts.append(_profiles(res.files))
+    in3d = _render3d(res.files) + _profiles(res.files)
+    if in3d:                                        # AFM only: no empty section for micrographs
+        parts += ["<h2>One imprint in 3D and profiles</h2>", in3d]
     parts.append("<h2>Positional error</h2>")
     parts.append(_positions(res))
     parts.append("<h2>Every imprint</h2>")

@@ -10,6 +10,12 @@ from markcal.stages.pm_model import model_to_dict
 
 __all__ = ["pmcal_report_html", "DATA_FILES"]
 
+#: human labels of the compared model parameters
+PARAM_LABELS = {"scale_x_ppm": "scale error x", "scale_y_ppm": "scale error y", "scale_z_ppm": "scale error z",
+                "nonorth_xy_urad": "non-orthogonality x–y", "nonorth_xz_urad": "non-orthogonality x–z",
+                "nonorth_yz_urad": "non-orthogonality y–z", "plane_tilt_x_urad": "surface slope along x",
+                "plane_tilt_y_urad": "surface slope along y"}
+
 DATA_FILES = (("calibration.json", "the chosen method's parameters with units, E terms and F, method, seed"),
               ("methods.csv", "one row per method: F, E terms, time, parameters, errors against truth if known"),
               ("residuals.csv", "measured − model per axis point, pose pair and probe point (µm)"),
@@ -93,7 +99,7 @@ def pmcal_report_html(result: PmcalResult) -> str:
     rows = []
     dicts = {n: model_to_dict(f.model) for n, f in result.fits.items()}
     for k, unit in COMPARED:
-        rows.append([esc(k)] + [num(dicts[n][k], unit) for n in result.fits]
+        rows.append([esc(PARAM_LABELS.get(k, k))] + [num(dicts[n][k], unit) for n in result.fits]
                     + ([num(result.truth[k], unit)] if result.truth else []))
     for i, a in enumerate("xyz"):
         rows.append([f"pose rotation {a}"] + [num(dicts[n]["rotvec_urad"][i], "µrad") for n in result.fits]
@@ -101,7 +107,7 @@ def pmcal_report_html(result: PmcalResult) -> str:
     for i, a in enumerate("xyz"):
         rows.append([f"T {a}"] + [num(dicts[n]["T_um"][i], "µm") for n in result.fits]
                     + ([num(result.truth["T_um"][i], "µm")] if result.truth else []))
-    rows.append(["plane c"] + [num(dicts[n]["plane_c_um"], "µm") for n in result.fits]
+    rows.append(["surface height at the origin"] + [num(dicts[n]["plane_c_um"], "µm") for n in result.fits]
                 + ([num(result.truth["plane_c_um"], "µm")] if result.truth else []))
     parts.append(table(head, rows))
     if result.truth:

@@ -89,6 +89,47 @@ def test_index_and_report_in_chromium(batch_out):
             browser.close()
 
 
+def _first_screen(pw_page, url, selector):
+    """Open ``url`` at 1400 × 900 and return whether ``selector`` lies wholly inside that first screen."""
+    pw_page.set_viewport_size({"width": 1400, "height": 900})
+    _check_page(pw_page, url)
+    box = pw_page.locator(selector).first.bounding_box()
+    return box is not None and box["y"] >= 0 and box["y"] + box["height"] <= 900
+
+
+@pytest.fixture(scope="module")
+def single_reports(batch_out, tmp_path_factory):
+    """Reports of the single commands the batch does not run: export note, inspect, path, drift."""
+    d = tmp_path_factory.mktemp("single")
+    stage = os.path.join(batch_out, "selfcal", "session01")
+    assert main(["export", "a3200", stage, "--out", str(d / "stage.cal"), "--quiet", "--operator", "QA"]) == 0
+    assert main(["inspect", str(d / "stage.cal"), "--out", str(d / "ins"), "--quiet"]) == 0
+    assert main(["render", "path", "--n", "40", "--seed", "1", "--out", str(d / "job"), "--quiet"]) == 0
+    assert main(["path", str(d / "job" / "job.csv"), "--out", str(d / "path"), "--quiet"]) in (0, 4)
+    assert main(["render", "pmcal", "--seed", "1", "--pose-grid", "3", "--out", str(d / "pm"), "--quiet"]) == 0
+    assert main(["drift", str(d / "pm" / "drift.csv"), "--out", str(d / "drift"), "--quiet"]) == 0
+    return {"export note": (d / "stage.cal.html", ".prov"), "inspect": (d / "ins" / "report.html", ".prov"),
+            "path": (d / "path" / "report.html", "#verdict"), "drift": (d / "drift" / "report.html", ".prov"),
+            "selfcal (batch)": (os.path.join(stage, "report.html"), "#verdict"),
+            "servo (batch)": (os.path.join(batch_out, "servo", "trace01", "report.html"), "#verdict")}
+
+
+def test_every_report_kind_shows_verdict_or_provenance_on_the_first_screen(single_reports):
+    exe = _chromium()
+    try:
+        from playwright import sync_api
+    except ImportError:
+        _missing("playwright is not installed (pip install -e '.[test]')")
+    with sync_api.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=exe, headless=True, args=["--no-sandbox"])
+        try:
+            off = [kind for kind, (path, sel) in single_reports.items()
+                   if not _first_screen(browser.new_page(), "file://" + str(path), sel)]
+        finally:
+            browser.close()
+    assert off == [], f"verdict / provenance not on the first 1400 x 900 screen: {off}"
+
+
 def test_dump_dom_of_index(batch_out):
     exe = _chromium()
     r = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom",
