@@ -129,7 +129,7 @@ def _correction_figure(result) -> str:
     ax.scatter(cmd[:, 0], cmd[:, 1], s=10, c="cyan", label="measured marks")
     ex = result.extrapolated
     if ex.any():
-        ax.scatter(xy[ex, 0], xy[ex, 1], s=3, c="white", marker=".", label="extrapolated nodes")
+        ax.scatter(xy[ex, 0], xy[ex, 1], s=6, c="white", edgecolors="0.35", linewidths=0.4, marker="o", label="extrapolated nodes")
     ax.set_aspect("equal")
     ax.set_xlabel("x wanted (mm)")
     ax.set_ylabel("y wanted (mm)")
