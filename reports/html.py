@@ -52,8 +52,12 @@ def esc(x) -> str:
     return html.escape(str(x))
 
 
+#: a length below 0.01 of these units is written in the next smaller one
+SMALLER = {"mm": "µm", "µm": "nm"}
+
+
 def num(v, unit: str = "mm") -> str:
-    """A value with sensible digits and its unit; '–' for missing or NaN."""
+    """A value with sensible digits and its unit; '–' for missing or NaN; no exponents for small lengths."""
     if v is None:
         return "–"
     try:
@@ -62,6 +66,8 @@ def num(v, unit: str = "mm") -> str:
         return esc(v)
     if not np.isfinite(v):
         return "–"
+    if unit in SMALLER and 0 < abs(v) < 0.01:      # 2.86e-05 mm reads as 0.0286 µm
+        return num(v * 1000.0, SMALLER[unit])
     if v == int(v) and abs(v) < 1e9 and not unit:
         s = f"{int(v):,}"
     elif v == 0:

@@ -123,7 +123,7 @@ def _positions(res):
     k = np.arange(ok.sum())
     ax.plot(k, 1000 * t["dx_um"][ok], "o-", ms=3, label="dx")
     ax.plot(k, 1000 * t["dy_um"][ok], "s-", ms=3, label="dy")
-    ax.axhline(100, color="r", lw=0.6, ls="--")
+    ax.axhline(100, color="r", lw=0.6, ls="--", label="±100 nm")
     ax.axhline(-100, color="r", lw=0.6, ls="--")
     ax.set_xlabel("imprint (file order)")
     ax.set_ylabel("error (nm)")
@@ -135,6 +135,7 @@ def _positions(res):
     ax2.set_aspect("equal", "datalim")
     ax2.set_xlabel("dx (nm)")
     ax2.set_ylabel("dy (nm)")
+    fig.subplots_adjust(wspace=0.35)              # "dy (nm)" clear of the left panel
     return img(png_b64(fig), "positional errors",
                "Positional errors after rigid registration of each array to its nominal grid: registered measured "
                "minus nominal (paper Fig. 9); dashed: ±100 nm.")

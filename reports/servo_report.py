@@ -290,6 +290,7 @@ def _overview(res):
     te, ee = _envelope(lg.t_s, (lg.ref_mm - lg.pos_mm) * 1e3)
     ax2.plot(te, ee, color=C_CCA, lw=0.8)
     ax2.set_xlabel("t (s)"); ax2.set_ylabel("reference − position (µm)"); ax2.grid(alpha=0.3)
+    fig.subplots_adjust(wspace=0.3)               # the right panel's label clear of the left panel
     many = len(lg.t_s) > 4000
     return img(png_b64(fig), "log", f"The whole log ({len(lg.t_s):,} samples"
                + ("; drawn as the minimum and maximum of every " f"{len(lg.t_s) // 2000} samples" if many else "")
