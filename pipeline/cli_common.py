@@ -20,6 +20,10 @@ class Parser(argparse.ArgumentParser):
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
 
+    def error(self, message):
+        """A usage mistake: one line on stderr, ``markcal: error: …``, exit status 1 (bad input), no usage dump."""
+        self.exit(1, f"markcal: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
     def add_argument(self, *args, **kwargs):
         """As argparse's; ``--out`` also answers to ``-o``; an option with a default but no help shows its default."""
         if args == ("--out",):

@@ -65,6 +65,15 @@ def test_pmcal_help_names_both_subcommands(capsys):
 
 
 def test_pmcal_command_refuses_extra_words(capsys):
-    with pytest.raises(SystemExit, match="2"):
+    with pytest.raises(SystemExit, match="1"):
         main(["pmcal", "command", "a.json", "b.csv", "c.csv", "--depth-um", "1", "--out", "x.csv"])
-    assert "unrecognized arguments: c.csv" in capsys.readouterr().err
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("markcal: error: ") and "unrecognized arguments: c.csv" in err[0]
+
+
+def test_usage_mistakes_are_one_line_exit_1(capsys):
+    for argv in (["scan"], ["render", "grid", "--rows", "many", "--out", "o"], ["nosuchcommand"]):
+        with pytest.raises(SystemExit, match="1"):
+            main(argv)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("markcal: error: "), (argv, err)
