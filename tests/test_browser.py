@@ -5,6 +5,7 @@ Needs Debian's ``chromium`` (``make test`` installs it when missing; a test neve
 packages). Without it the test is skipped on a developer's machine and fails in CI (``CI=true``),
 where a missing browser is a broken setup, not a reason to test less.
 """
+import contextlib
 import os
 import shutil
 import subprocess
@@ -62,7 +63,9 @@ def _check_page(pw_page, url):
     return n_img, hrefs
 
 
-def test_index_and_report_in_chromium(batch_out):
+@contextlib.contextmanager
+def _browser():
+    """A headless Chromium driven by playwright (skipped, or failed in CI, when either is missing)."""
     exe = _chromium()
     try:
         from playwright import sync_api
@@ -71,22 +74,27 @@ def test_index_and_report_in_chromium(batch_out):
     with sync_api.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=exe, headless=True, args=["--no-sandbox"])
         try:
-            page = browser.new_page()
-            n_img, hrefs = _check_page(page, "file://" + os.path.join(batch_out, "index.html"))
-            assert page.is_visible("table#summary")
-            n_rows = page.evaluate("document.querySelectorAll('#summary tbody tr').length")
-            assert n_rows == 4
-            assert n_img >= 2                      # servo and selfcal trend plots
-            reports = [h for h in hrefs if h.endswith("report.html")]
-            assert len(reports) == 3               # every processed input links its report
-            # sorting and filtering work in the page
-            page.click("#summary th >> nth=3")
-            page.select_option("#st", "error")
-            assert page.evaluate("Array.from(document.querySelectorAll('#summary tbody tr'))"
-                                 ".filter(r => r.style.display !== 'none').length") == 1
-            _check_page(browser.new_page(), reports[0])
+            yield browser
         finally:
             browser.close()
+
+
+def test_index_and_report_in_chromium(batch_out):
+    with _browser() as browser:
+        page = browser.new_page()
+        n_img, hrefs = _check_page(page, "file://" + os.path.join(batch_out, "index.html"))
+        assert page.is_visible("table#summary")
+        n_rows = page.evaluate("document.querySelectorAll('#summary tbody tr').length")
+        assert n_rows == 4
+        assert n_img >= 2                      # servo and selfcal trend plots
+        reports = [h for h in hrefs if h.endswith("report.html")]
+        assert len(reports) == 3               # every processed input links its report
+        # sorting and filtering work in the page
+        page.click("#summary th >> nth=3")
+        page.select_option("#st", "error")
+        assert page.evaluate("Array.from(document.querySelectorAll('#summary tbody tr'))"
+                             ".filter(r => r.style.display !== 'none').length") == 1
+        _check_page(browser.new_page(), reports[0])
 
 
 def _first_screen(pw_page, url, selector):
@@ -115,18 +123,9 @@ def single_reports(batch_out, tmp_path_factory):
 
 
 def test_every_report_kind_shows_verdict_or_provenance_on_the_first_screen(single_reports):
-    exe = _chromium()
-    try:
-        from playwright import sync_api
-    except ImportError:
-        _missing("playwright is not installed (pip install -e '.[test]')")
-    with sync_api.sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=exe, headless=True, args=["--no-sandbox"])
-        try:
-            off = [kind for kind, (path, sel) in single_reports.items()
-                   if not _first_screen(browser.new_page(), "file://" + str(path), sel)]
-        finally:
-            browser.close()
+    with _browser() as browser:
+        off = [kind for kind, (path, sel) in single_reports.items()
+               if not _first_screen(browser.new_page(), "file://" + str(path), sel)]
     assert off == [], f"verdict / provenance not on the first 1400 x 900 screen: {off}"
 
 
