@@ -42,9 +42,11 @@ def cmd_pmcal_command(args) -> int:
     out = os.path.abspath(args.out)
     if out in (os.path.abspath(args.calibration), os.path.abspath(args.targets)):
         raise MarkcalError("--out would overwrite an input file", args.out)
+    say = progress(args.quiet)
+    say(f"stage commands for {args.targets} from {args.calibration}")
     cols = run_command(args.calibration, args.targets, args.depth_um)
     write_csv(out, cols)
-    progress(args.quiet)(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
+    say(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
     print(out)
     return 0
 
