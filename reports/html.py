@@ -52,7 +52,7 @@ def esc(x) -> str:
     return html.escape(str(x))
 
 
-#: a length below 0.01 of these units is written in the next smaller one
+#: a length below 0.001 of these units is written in the next smaller one (where .3g would use an exponent)
 SMALLER = {"mm": "µm", "µm": "nm"}
 
 
@@ -66,7 +66,7 @@ def num(v, unit: str = "mm") -> str:
         return esc(v)
     if not np.isfinite(v):
         return "–"
-    if unit in SMALLER and 0 < abs(v) < 0.01:      # 2.86e-05 mm reads as 0.0286 µm
+    if unit in SMALLER and 0 < abs(v) < 1e-3:      # 2.86e-05 mm reads as 0.0286 µm, not in exponent form
         return num(v * 1000.0, SMALLER[unit])
     if v == int(v) and abs(v) < 1e9 and not unit:
         s = f"{int(v):,}"
