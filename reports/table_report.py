@@ -9,8 +9,9 @@ __all__ = ["table_report_html", "structure_rows"]
 
 
 def _figure(t) -> str:
-    fig = new_figure(13, 4.4)
-    ax = fig.add_subplot(1, 3, 1)
+    fig = new_figure(13, 5.0)
+    gs = fig.add_gridspec(1, 3, width_ratios=[1.5, 1, 1])      # the arrow map larger: its arrows stay visible
+    ax = fig.add_subplot(gs[0, 0])
     step = max(1, len(t.x_mm) // 12)
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
@@ -28,7 +29,7 @@ def _figure(t) -> str:
     dy = float(np.diff(t.y_mm).mean()) / 2 if len(t.y_mm) > 1 else 0.5
     extent = [t.x_mm[0] - dx, t.x_mm[-1] + dx, t.y_mm[0] - dy, t.y_mm[-1] + dy]
     for i, (comp, name) in enumerate(((t.u, "x component"), (t.v, "y component"))):
-        axc = fig.add_subplot(1, 3, 2 + i)
+        axc = fig.add_subplot(gs[0, 1 + i])
         lim = float(np.max(np.abs(comp))) or 1.0
         im = axc.imshow(comp, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent)
         fig.colorbar(im, ax=axc, shrink=0.8, label=t.unit)
