@@ -38,21 +38,59 @@ class Parser(argparse.ArgumentParser):
         return super().add_argument(*args, **kwargs)
 
 
+class _ScaledStore(argparse.Action):
+    """Store ``value * factor`` (an old spelling in other units than the current option)."""
+
+    def __init__(self, option_strings, dest, factor=1.0, **kwargs):
+        self.factor = factor
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, values * self.factor)
+
+
+def add_alias(p, old: str, new: str, factor: float = 1.0, type=float, dest: str | None = None) -> None:
+    """Accept ``old`` as a hidden spelling of option ``new`` (not listed in ``--help``).
+
+    ``factor`` converts a value given in the old option's unit to the new option's unit
+    (e.g. ``--noise-nm`` 5 is ``--noise-um`` 0.005: factor 1e-3).
+    """
+    dest = dest or new.lstrip("-").replace("-", "_")
+    if factor == 1.0:
+        p.add_argument(old, dest=dest, type=type, default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    else:
+        p.add_argument(old, dest=dest, type=type, default=argparse.SUPPRESS, help=argparse.SUPPRESS,
+                       action=_ScaledStore, factor=factor)
+
+
 def add_run_options(p) -> None:
     """``--tol KEY<=VALUE`` (repeatable) and the traceability fields of a flow command."""
     p.add_argument("--tol", action="append", default=[], metavar="KEY<=VALUE",
                    help="pass/fail limit on a summary figure, e.g. rms_mm<=0.05 (repeatable; overrides the "
                         "flow's default limits; exit status 4 when out of tolerance)")
-    for k in ("machine", "lens", "operator", "note"):
+    add_context_options(p)
+
+
+#: traceability fields a user may give on any command that writes a report
+CONTEXT_FIELDS = ("machine", "lens", "operator", "note")
+
+
+def add_context_options(p) -> None:
+    """``--machine``, ``--lens``, ``--operator``, ``--note``: recorded in summary.json and the report."""
+    for k in CONTEXT_FIELDS:
         p.add_argument(f"--{k}", metavar="TEXT", help=f"{k} recorded in summary.json and the report")
+
+
+def context_of(args) -> dict:
+    """The traceability fields given on the command line (None when absent)."""
+    return {k: getattr(args, k, None) for k in CONTEXT_FIELDS}
 
 
 def run_options(args) -> dict:
     """``tolerances`` and ``context`` keyword arguments of ``run_and_write`` from parsed arguments."""
     from markcal.stages.verdict import parse_tolerance
     tolerances = dict(parse_tolerance(t) for t in getattr(args, "tol", []) or [])
-    context = {k: getattr(args, k, None) for k in ("machine", "lens", "operator", "note")}
-    return {"tolerances": tolerances, "context": context}
+    return {"tolerances": tolerances, "context": context_of(args)}
 
 
 class LazyChoices:

@@ -4,6 +4,7 @@ from __future__ import annotations
 import os
 import sys
 
+from markcal.pipeline.cli_common import add_context_options
 from markcal.pipeline.progress import progress
 
 
@@ -23,8 +24,10 @@ def _warn(t) -> None:
 
 
 def cmd_export(args) -> int:
+    from markcal.pipeline.cli_common import context_of
     from markcal.pipeline.flows.export import export_table, inspect_bytes
-    from markcal.reports.export import write_export
+    from markcal.pipeline.registry import provenance
+    from markcal.reports.export import FACT_LABELS, write_export
     from markcal.reports.files import check_out_file
     from markcal.stages.errors import MarkcalError
     from markcal.stages.table_formats import FORMATS
@@ -37,15 +40,18 @@ def cmd_export(args) -> int:
         raise MarkcalError("usage: markcal export FORMAT RESULT_DIR --out FILE (markcal export --list names the formats)")
     say = progress(args.quiet)
     check_out_file(args.out, [args.source])
+    say(f"writing a {args.format} table from {args.source}")
     cor, ctb = _cor_ctb_options(args)
     data, facts = export_table(args.format, args.source, lens_mm=args.lens_mm, cor=cor, ctb=ctb, rtc4=args.rtc4,
                                fill_missing=args.fill_missing, ax1=args.ax1, ax2=args.ax2, sign=args.sign,
                                allow_extrapolation=args.allow_extrapolation)
     t = inspect_bytes(data, args.out, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
-    note = write_export(args.out, data, t, facts, report=not args.no_report)
+    note = write_export(args.out, data, t, facts, report=not args.no_report,
+                        provenance=provenance(args.source, context=context_of(args)))
     _warn(t)
     say(t.layout)
-    say(", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in facts.items()))
+    say(", ".join(f"{FACT_LABELS.get(k, k)} {v:.4g}" if isinstance(v, float) else f"{FACT_LABELS.get(k, k)} {v}"
+                  for k, v in facts.items()))
     if facts.get("extrapolated_nodes"):
         say(f"note: {facts['extrapolated_nodes']} nodes lie outside the measured plate and carry the value at "
             "its nearest edge")
@@ -56,11 +62,14 @@ def cmd_export(args) -> int:
 
 
 def cmd_inspect(args) -> int:
+    from markcal.pipeline.cli_common import context_of
     from markcal.pipeline.flows.export import inspect_table
-    from markcal.reports.files import atomic_write_text, write_csv
+    from markcal.pipeline.registry import provenance
+    from markcal.reports.files import atomic_write_text, write_csv, write_json
     from markcal.reports.table_report import table_report_html
 
     cor, ctb = _cor_ctb_options(args)
+    progress(args.quiet)(f"reading {args.table}")
     t = inspect_table(args.table, lens_mm=args.lens_mm, cor=cor, ctb=ctb, sign=args.sign)
     _warn(t)
     out = args.out or os.path.splitext(os.path.basename(args.table))[0] + "_inspect"
@@ -70,7 +79,13 @@ def cmd_inspect(args) -> int:
     unit = "um" if t.unit == "µm" else t.unit
     write_csv(os.path.join(out, "table.csv"), {"x_mm": gx.ravel(), "y_mm": gy.ravel(),
                                                 f"u_{unit}": t.u.ravel(), f"v_{unit}": t.v.ravel()})
-    atomic_write_text(os.path.join(out, "report.html"), table_report_html(t))
+    prov = provenance(args.table, context=context_of(args))
+    mag = np.hypot(t.u, t.v)
+    write_json(os.path.join(out, "summary.json"),
+               {"kind": "inspect", "format": t.format, "layout": t.layout, "unit": t.unit,
+                "nodes_x": len(t.x_mm), "nodes_y": len(t.y_mm), "max_magnitude": float(mag.max()),
+                "rms_magnitude": float(np.sqrt(np.mean(mag ** 2))), "warnings": list(t.warnings), **prov})
+    atomic_write_text(os.path.join(out, "report.html"), table_report_html(t, provenance=prov))
     print(os.path.abspath(os.path.join(out, "report.html")))
     return 0
 
@@ -105,7 +120,8 @@ def register(sub, render_sub) -> None:
     ex.add_argument("--allow-extrapolation", action="store_true",
                     help="write even when most of the table lies outside the measured plate")
     ex.add_argument("--no-report", action="store_true", help="do not write the note <out>.html beside the table")
-    ex.add_argument("--quiet", action="store_true")
+    ex.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_context_options(ex)
     ex.set_defaults(func=cmd_export)
 
     ins = sub.add_parser("inspect", help="read a controller table back and draw its field (report.html, table.csv)")
@@ -113,4 +129,5 @@ def register(sub, render_sub) -> None:
     ins.add_argument("--out", help="output folder (default: <name>_inspect)")
     ins.add_argument("--quiet", action="store_true", help="no progress lines (structural warnings still go to stderr)")
     _table_options(ins)
+    add_context_options(ins)
     ins.set_defaults(func=cmd_inspect)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options, choices_from
+from markcal.pipeline.cli_common import add_alias, add_run_options, choices_from
 from markcal.stages.errors import MarkcalError
 
 
@@ -30,11 +30,11 @@ def cmd_render_grid(args) -> int:
 
     say = progress(args.quiet)
     opt = GridRenderOptions(rows=args.rows, cols=args.cols, lens_mm=args.lens_mm, fill=args.fill,
-                            noise_mm=args.noise_mm, mirror=args.mirror, n_missing=args.missing)
+                            noise_mm=args.noise_um * 1e-3, mirror=args.mirror, n_missing=args.missing_marks)
     if not (3 <= opt.rows <= 101 and 3 <= opt.cols <= 101 and opt.lens_mm > 0 and 0 < opt.fill <= 1
             and opt.noise_mm >= 0 and 0 <= opt.n_missing < opt.rows * opt.cols):
-        raise MarkcalError("render grid: rows/cols 3..101, --lens-mm > 0, 0 < --fill <= 1, --noise-mm >= 0, "
-                           "--missing below the number of marks")
+        raise MarkcalError("render grid: rows/cols 3..101, --lens-mm > 0, 0 < --fill <= 1, --noise-um >= 0, "
+                           "--missing-marks below the number of marks")
     say(f"rendering a hand-measured {opt.rows} x {opt.cols} grid, seed {args.seed}")
     r = render_grid(args.seed, opt)
     print(os.path.abspath(save_measured_grid(args.out, r, args.format)))
@@ -78,9 +78,11 @@ def register(sub, render_sub) -> None:
     rg.add_argument("--cols", type=int, default=9)
     rg.add_argument("--lens-mm", type=float, default=110.0, help="lens field (mm)")
     rg.add_argument("--fill", type=float, default=0.8, help="fraction of the lens field the marks span")
-    rg.add_argument("--noise-mm", type=float, default=0.02, help="measurement noise, 1 sigma per axis (mm)")
+    rg.add_argument("--noise-um", type=float, default=20.0, help="measurement noise, 1 σ per axis, µm")
+    add_alias(rg, "--noise-mm", "--noise-um", factor=1e3)
     rg.add_argument("--mirror", action="store_true", help="measured from the back (mirrored)")
-    rg.add_argument("--missing", type=int, default=2, help="marks left unmeasured")
+    rg.add_argument("--missing-marks", type=int, default=2, help="marks left unmeasured")
+    add_alias(rg, "--missing", "--missing-marks", type=int)
     rg.add_argument("--format", choices=["csv", "units", "bjjcz"], default="csv",
                     help="csv (mm), units (CSV in controller units, 65536 per lens field) or bjjcz (whitespace)")
     rg.add_argument("--quiet", action="store_true")

@@ -4,7 +4,7 @@ from __future__ import annotations
 import os
 import sys
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import add_alias, add_run_options
 from markcal.pipeline.progress import progress
 
 
@@ -70,7 +70,7 @@ def cmd_render_om(args) -> int:
 
     say = progress(args.quiet)
     o = OmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
-                  size_px=args.size_px, pixel_um=args.pixel_um, bits=args.bits)
+                  size_px=args.size_px, pixel_um=args.pixel_size_um, bits=args.bits)
     say(f"rendering OM micrograph, seed {args.seed}")
     save_indent_render(args.out, render_om(args.seed, o), "image")
     print(os.path.abspath(args.out))
@@ -124,7 +124,8 @@ def register(sub, render_sub) -> None:
             r.add_argument("--corner-margin-px", type=float, default=None,
                            help="--single: put the corner nearest a border this far from it (px)")
         else:
-            r.add_argument("--pixel-um", type=_positive, default=0.1)
+            r.add_argument("--pixel-size-um", type=_positive, default=0.1, help="pixel size of the micrograph, µm")
+            add_alias(r, "--pixel-um", "--pixel-size-um", type=_positive)
             r.add_argument("--bits", type=int, choices=[8, 16], default=8)
         r.add_argument("--quiet", action="store_true")
         r.set_defaults(func=fn)

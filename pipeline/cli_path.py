@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import LazyChoices, add_run_options
+from markcal.pipeline.cli_common import LazyChoices, add_alias, add_run_options
 from markcal.stages.errors import MarkcalError
 
 
@@ -68,8 +68,9 @@ def register(sub, render_sub) -> None:
     p.add_argument("--method", default=None, choices=LazyChoices(_method_names), metavar="METHOD",
                    help="order written out (%(choices)s): auto (default) = local search from nearest neighbour (ls); "
                         "the paper GA (ga), GA then local search (ga+ls, alias ga+2opt), or a baseline")
-    p.add_argument("--tolerance-mm", type=float, default=None,
+    p.add_argument("--chord-tolerance-mm", dest="tolerance_mm", type=float, default=None,
                    help="chordal tolerance for flattening arcs, circles, ellipses, splines and Béziers (mm)")
+    add_alias(p, "--tolerance-mm", "--chord-tolerance-mm", dest="tolerance_mm")
     p.add_argument("--keep-layer-order", action="store_true",
                    help="order only inside each layer / group / pen; layers marked in input order")
     p.add_argument("--seed", type=int, default=None, help="seed of the GA and the local-search kicks")

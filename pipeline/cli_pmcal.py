@@ -1,25 +1,19 @@
 """``markcal pmcal``, ``markcal pmcal command``, ``markcal drift`` and ``markcal render pmcal``.
 
-``pmcal`` takes one positional word: a session folder, or ``command`` followed by
-``calibration.json targets.csv`` (a session folder literally named ``command``
-must be given as ``./command``).
+``pmcal`` has two sub-commands: ``calibrate`` (the default: ``markcal pmcal SESSION`` is
+``markcal pmcal calibrate SESSION``) and ``command``. A session folder literally named
+``command`` or ``calibrate`` must be given as ``./command``.
 """
 from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options, choices_from
+from markcal.pipeline.cli_common import Parser, add_context_options, add_run_options, choices_from
 from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
 
 
 def cmd_pmcal(args) -> int:
-    if args.session == "command":
-        return _cmd_command(args)
-    if args.extra:
-        raise MarkcalError(f"unexpected argument(s) after the session folder: {' '.join(args.extra)}")
-    if args.depth_um is not None:
-        raise MarkcalError("--depth-um belongs to 'markcal pmcal command'")
     from markcal.pipeline.cli_common import run_options
     from markcal.pipeline.registry import exit_status, run_and_write
 
@@ -38,20 +32,21 @@ def cmd_pmcal(args) -> int:
     return exit_status(res.summary)
 
 
-def _cmd_command(args) -> int:
+def cmd_pmcal_command(args) -> int:
+    """``markcal pmcal command``: stage commands for targets from a calibration."""
     from markcal.pipeline.flows.pmcal import run_command
     from markcal.reports.files import write_csv
 
-    if len(args.extra) != 2:
-        raise MarkcalError("usage: markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
     if args.depth_um is None:
         raise MarkcalError("markcal pmcal command needs --depth-um")
     from markcal.reports.files import check_out_file
     out = os.path.abspath(args.out)
-    check_out_file(args.out, args.extra)
-    cols = run_command(args.extra[0], args.extra[1], args.depth_um)
+    check_out_file(args.out, [args.calibration, args.targets])
+    say = progress(args.quiet)
+    say(f"stage commands for {args.targets} from {args.calibration}")
+    cols = run_command(args.calibration, args.targets, args.depth_um)
     write_csv(out, cols)
-    progress(args.quiet)(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
+    say(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
     print(out)
     return 0
 
@@ -62,8 +57,13 @@ def cmd_drift(args) -> int:
 
     from markcal.reports.files import check_out_dir
     check_out_dir(args.out, [p for p in (args.drift, args.truth) if p])       # before any computation
+    from markcal.pipeline.cli_common import context_of
+    from markcal.pipeline.registry import provenance
+
     say = progress(args.quiet)
+    say(f"compensating {args.drift} ({args.method})")
     res = run_drift(args.drift, method=args.method, truth_path=args.truth, noise_um=args.noise_um, alpha=args.alpha)
+    res.summary.update(provenance([p for p in (args.drift, args.truth) if p], context=context_of(args)))
     paths = write_drift_outputs(res, args.out, report=not args.no_report)
     s = res.summary
     say(f"{res.method}: η x {s['eta_x_pct']:.1f} %, y {s['eta_y_pct']:.1f} %, z {s['eta_z_pct']:.1f} % "
@@ -116,27 +116,54 @@ def _write_om_marks(r, out, say) -> None:
     write_csv(os.path.join(out, "marks.csv"), om.marks)
 
 
+class _DefaultSubcommandParser(Parser):
+    """A parser whose first word, when it names none of its sub-commands, runs ``default_subcommand``.
+
+    ``markcal pmcal SESSION`` then means ``markcal pmcal calibrate SESSION``.
+    """
+
+    default_subcommand = "calibrate"
+
+    def parse_known_args(self, args=None, namespace=None):
+        import sys
+        args = list(sys.argv[1:] if args is None else args)
+        names = {n for a in self._subparsers._group_actions for n in getattr(a, "choices", None) or ()} \
+            if self._subparsers else set()
+        if args and args[0] not in names and args[0] not in ("-h", "--help"):
+            args.insert(0, self.default_subcommand)
+        return super().parse_known_args(args, namespace)
+
+
 def register(sub, render_sub) -> None:
-    """Add ``pmcal`` and ``drift`` to ``sub`` and ``pmcal`` to ``render_sub``."""
-
-    import argparse
-
-    pc = sub.add_parser("pmcal", formatter_class=argparse.RawDescriptionHelpFormatter, help="precision-marking machine calibration (GA / least squares); "
-                        "'pmcal command CAL.json TARGETS.csv' makes stage commands",
-                        description="markcal pmcal SESSION_DIR --out DIR [--method ga|lsq|ga+lsq]\n"
-                        "markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
-    pc.add_argument("session", help="session folder (axes.csv, pose.csv or om/ + marks.csv, probe.csv, drift.csv), "
-                    "or the word 'command'")
-    pc.add_argument("extra", nargs="*", help="with 'command': CALIBRATION.json TARGETS.csv")
-    pc.add_argument("--out", required=True, help="output folder (calibration) or COMMANDS.csv (command)")
-    pc.add_argument("--method", choices=choices_from("markcal.pipeline.flows.pmcal", "METHODS"), default="ga+lsq",
+    """Add ``pmcal`` (sub-commands ``calibrate``, the default, and ``command``) and ``drift`` to ``sub``,
+    and ``pmcal`` to ``render_sub``."""
+    pc = sub.add_parser("pmcal", help="precision-marking machine calibration (GA / least squares); "
+                        "'pmcal command' makes stage commands",
+                        description="markcal pmcal [calibrate] SESSION_DIR --out DIR: calibrate from a session; "
+                        "markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv: "
+                        "stage commands. A session folder named like a sub-command must be given as ./NAME.")
+    pc.__class__ = _DefaultSubcommandParser
+    psub = pc.add_subparsers(dest="pmcal_command", required=True, metavar="{calibrate,command}", parser_class=Parser)
+    ca = psub.add_parser("calibrate", help="calibrate from a session folder (the default: 'markcal pmcal SESSION' "
+                         "works too)")
+    ca.add_argument("session", help="session folder (axes.csv, pose.csv or om/ + marks.csv, probe.csv, drift.csv)")
+    ca.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    ca.add_argument("--method", choices=choices_from("markcal.pipeline.flows.pmcal", "METHODS"), default="ga+lsq",
                     metavar="METHOD", help="calibration written: %(choices)s")
-    pc.add_argument("--seed", type=int, default=0, help="GA seed")
-    pc.add_argument("--depth-um", type=float, default=None, help="command: depth along the surface normal, µm")
-    pc.add_argument("--no-report", action="store_true", help="skip report.html")
-    pc.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-    add_run_options(pc)
-    pc.set_defaults(func=cmd_pmcal)
+    ca.add_argument("--seed", type=int, default=0, help="GA seed")
+    ca.add_argument("--no-report", action="store_true", help="skip report.html")
+    ca.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_run_options(ca)
+    ca.set_defaults(func=cmd_pmcal)
+
+    co = psub.add_parser("command", help="stage commands for targets from a calibration",
+                         description="markcal pmcal command CALIBRATION.json TARGETS.csv --depth-um D --out COMMANDS.csv")
+    co.add_argument("calibration", metavar="CALIBRATION.json", help="calibration.json written by 'markcal pmcal'")
+    co.add_argument("targets", metavar="TARGETS.csv", help="targets: x_um,y_um in the OM frame")
+    co.add_argument("--depth-um", type=float, default=None, help="depth along the surface normal, µm (required)")
+    co.add_argument("--out", required=True, metavar="COMMANDS.csv", help="commands file to write")
+    co.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    co.set_defaults(func=cmd_pmcal_command)
 
     dr = sub.add_parser("drift", help="online drift compensation from reference-array samples; η per axis")
     dr.add_argument("drift", help="drift.csv: t_min,dx_um,dy_um,dz_um")
@@ -148,6 +175,7 @@ def register(sub, render_sub) -> None:
     dr.add_argument("--alpha", type=float, default=0.8, help="α of the paper's filter")
     dr.add_argument("--no-report", action="store_true", help="skip report.html")
     dr.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+    add_context_options(dr)
     dr.set_defaults(func=cmd_drift)
 
     rp = render_sub.add_parser("pmcal", help="calibration session of a precision-marking machine (paper 000)")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import add_alias, add_run_options
 from markcal.pipeline.progress import progress
 
 
@@ -32,10 +32,10 @@ def cmd_render_selfcal(args) -> int:
 
     if args.k < 4:      # n, pitch and k's divisibility are checked by SelfcalSetup
         raise MarkcalError(f"--k must be a positive multiple of 4 (got {args.k})")
-    if args.repeats < 1 or args.noise_xy_um < 0 or args.noise_theta_deg < 0:
+    if args.repeats < 1 or args.noise_um < 0 or args.noise_theta_deg < 0:
         raise MarkcalError("--repeats must be >= 1 and the noise levels >= 0")
     say = progress(args.quiet)
-    opts = SelfcalOptions(n=args.n, pitch_mm=args.pitch_mm, k=args.k, noise_xy_um=args.noise_xy_um,
+    opts = SelfcalOptions(n=args.n, pitch_mm=args.pitch_mm, k=args.k, noise_xy_um=args.noise_um,
                           noise_theta_deg=args.noise_theta_deg, repeats=args.repeats,
                           missing_marks=args.missing_marks)
     say(f"rendering a {args.n} x {args.n} self-calibration session, K = {args.k}, seed {args.seed}")
@@ -60,7 +60,8 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--n", type=int, default=11, help="sites per side (odd); default 11 as in the paper")
     rs.add_argument("--pitch-mm", type=float, default=10.0)
     rs.add_argument("--k", type=int, default=24, help="angular lines (multiple of 4); the paper's 15 deg: 24")
-    rs.add_argument("--noise-xy-um", type=float, default=0.02)
+    rs.add_argument("--noise-um", type=float, default=0.02, help="measurement noise of a mark position, 1 σ per axis, µm")
+    add_alias(rs, "--noise-xy-um", "--noise-um")
     rs.add_argument("--noise-theta-deg", type=float, default=0.001)
     rs.add_argument("--repeats", type=int, default=1, help="readings averaged per mark (the paper's P)")
     rs.add_argument("--missing-marks", type=int, default=0, help="grid readings to drop at random")

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import os
 
-from markcal.pipeline.cli_common import add_run_options
+from markcal.pipeline.cli_common import add_alias, add_run_options
 from markcal.stages.errors import MarkcalError
 
 
@@ -46,6 +46,9 @@ def cmd_servo(args) -> int:
             cfg = replace(cfg, settle_band_um=args.settle_band_um)
         res = run_servo(cfg, source=os.path.abspath(args.config) if args.config else "paper defaults (no config)",
                         progress=say)
+        from markcal.pipeline.cli_common import context_of
+        from markcal.pipeline.registry import provenance
+        res.summary.update(provenance([args.config] if args.config else [], context=context_of(args)))
         say("writing tables and report")
         paths = write_servo_outputs(res, args.out, report=not args.no_report)
     s = res.summary
@@ -70,7 +73,7 @@ def cmd_render_servo(args) -> int:
     say = progress(args.quiet)
     opts = TraceOptions(kind=args.kind, controller=args.controller, stroke_mm=args.stroke_mm,
                         amplitude_mm=args.amplitude_mm, frequency_hz=args.frequency_hz, periods=args.periods,
-                        noise_nm=args.noise_nm)
+                        noise_nm=args.noise_um * 1e3)
     say(f"rendering a {args.kind} trace ({args.controller}), seed {args.seed}")
     r = render_servo_trace(args.seed, opts)
     os.makedirs(args.out, exist_ok=True)
@@ -85,10 +88,10 @@ def cmd_render_servo_log(args) -> int:
 
     say = progress(args.quiet)
     opts = LogOptions(kind=args.kind, n_moves=args.moves, stroke_mm=args.stroke_mm, hold_s=args.hold_s,
-                      ts_s=args.ts_ms * 1e-3, fn_hz=args.fn_hz, zeta=args.zeta, dc_gain=args.dc_gain,
+                      ts_s=args.sample_period_ms * 1e-3, fn_hz=args.fn_hz, zeta=args.zeta, dc_gain=args.dc_gain,
                       amplitude_mm=args.amplitude_mm, frequency_hz=args.frequency_hz, periods=args.periods,
-                      noise_nm=args.noise_nm, jitter=args.jitter, time_unit=args.time_unit, pos_unit=args.pos_unit,
-                      counts_per_mm=args.counts_per_mm, layout=args.layout, band_um=args.band_um,
+                      noise_nm=args.noise_um * 1e3, jitter=args.jitter, time_unit=args.time_unit, pos_unit=args.pos_unit,
+                      counts_per_mm=args.counts_per_mm, layout=args.layout, band_um=args.settle_band_um,
                       n_lines=args.lines)
     say(f"rendering a {opts.kind} drive log ({opts.layout}, time in {opts.time_unit}, positions in "
         f"{opts.pos_unit}), seed {args.seed}")
@@ -136,7 +139,8 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--amplitude-mm", type=float, default=5.0)
     rs.add_argument("--frequency-hz", type=float, default=1.0)
     rs.add_argument("--periods", type=float, default=3.0)
-    rs.add_argument("--noise-nm", type=float, default=5.0, help="encoder noise, 1 sigma, nm")
+    rs.add_argument("--noise-um", type=float, default=0.005, help="encoder noise, 1 σ, µm")
+    add_alias(rs, "--noise-nm", "--noise-um", factor=1e-3)
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_servo)
 
@@ -148,14 +152,16 @@ def register(sub, render_sub) -> None:
     rl.add_argument("--lines", type=int, default=0, help="fill this many lines instead (e.g. 1000000)")
     rl.add_argument("--stroke-mm", type=float, default=1.0)
     rl.add_argument("--hold-s", type=float, default=0.2, help="time between steps, s")
-    rl.add_argument("--ts-ms", type=float, default=0.1, help="sample step, ms")
+    rl.add_argument("--sample-period-ms", type=float, default=0.1, help="sample period, ms")
+    add_alias(rl, "--ts-ms", "--sample-period-ms")
     rl.add_argument("--fn-hz", type=float, default=40.0, help="natural frequency of the stage loop, Hz")
     rl.add_argument("--zeta", type=float, default=0.4, help="damping ratio")
     rl.add_argument("--dc-gain", type=float, default=1.0, help="static gain K (steady-state error (1 - K) x target)")
     rl.add_argument("--amplitude-mm", type=float, default=1.0)
     rl.add_argument("--frequency-hz", type=float, default=2.0)
     rl.add_argument("--periods", type=float, default=3.0)
-    rl.add_argument("--noise-nm", type=float, default=5.0, help="encoder noise, 1 sigma, nm")
+    rl.add_argument("--noise-um", type=float, default=0.005, help="encoder noise, 1 σ, µm")
+    add_alias(rl, "--noise-nm", "--noise-um", factor=1e-3)
     rl.add_argument("--jitter", type=float, default=0.1, help="timestamp jitter, peak-to-peak fraction of the step")
     rl.add_argument("--time-unit", choices=["s", "ms", "us"], default="s")
     rl.add_argument("--pos-unit", choices=["mm", "um", "counts"], default="mm")
@@ -163,6 +169,7 @@ def register(sub, render_sub) -> None:
     rl.add_argument("--layout", choices=["csv", "tsv", "ws"], default="csv",
                     help="csv: header t_<unit>,ref_<unit>,pos_<unit>; tsv: drive export time/target/demand/actual/"
                          "current_A; ws: whitespace, no header, comment lines, columns sample time actual target")
-    rl.add_argument("--band-um", type=float, default=5.0, help="settling band of the truth, µm")
+    rl.add_argument("--settle-band-um", type=float, default=5.0, help="settling band of the truth, µm")
+    add_alias(rl, "--band-um", "--settle-band-um")
     rl.add_argument("--quiet", action="store_true")
     rl.set_defaults(func=cmd_render_servo_log)

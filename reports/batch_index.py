@@ -138,7 +138,7 @@ def _trend_plot(flow, key, label, records) -> str:
         gi_keep = [i for i in keep if rs[i]["group"] == g]
         ax.plot(gi_keep, [vals[i] for i in gi_keep], color="#999", lw=0.8, zorder=2)
     for op, lim in _limit(rs, key).items():
-        ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {op} {lim:g}")
+        ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {'≤' if op == '<=' else '≥' if op == '>=' else op} {lim:g}")
     ax.set_xticks(keep)
     ax.set_xticklabels([drawable(rs[i]["name"].split("/")[-1]) for i in keep], rotation=60, ha="right", fontsize=7)
     ax.set_ylabel(label)

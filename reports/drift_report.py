@@ -50,8 +50,9 @@ def drift_report_html(result: DriftResult) -> str:
     for name in METHODS:
         e = result.eta[name]
         for ax, a in enumerate("xyz"):
-            rows.append([esc(name) + (" (chosen)" if name == result.method else ""), a, num(e[f"pre_{src}_um"][ax], "µm"),
-                         num(e[f"post_{src}_um"][ax], "µm"), num(e[f"eta_{src}_pct"][ax], "%")])
+            rows.append([esc(name) + (" (chosen)" if name == result.method else ""), a,     # nm, as the curves
+                         num(e[f"pre_{src}_um"][ax] * 1e3, "nm"), num(e[f"post_{src}_um"][ax] * 1e3, "nm"),
+                         num(e[f"eta_{src}_pct"][ax], "%")])
     parts.append(table(head, rows, left_cols=2))
     if src == "true":
         parts.append("<p>At the samples alone (error at t<sub>k+1</sub> = m<sub>k+1</sub> − C<sub>k</sub>): "
@@ -60,4 +61,4 @@ def drift_report_html(result: DriftResult) -> str:
     parts.append("<p>The paper (Table 2) reports η = 76 % (X/Y) and 78 % (Z) for its filter (α = 0.8).</p>")
     parts.append(_curves(result))
     parts.append(data_files_footer(DATA_FILES))
-    return page("markcal drift: online drift compensation", parts, source=result.source)
+    return page("markcal drift: online drift compensation", parts, source=result.source, summary=s)

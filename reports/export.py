@@ -19,6 +19,15 @@ def note_path(table_path: str) -> str:
     return str(table_path) + ".html"
 
 
+#: human labels of the facts ``export_table`` reports (a key not listed keeps its name, without underscores)
+FACT_LABELS = {"units_per_mm": "scale (galvo units per mm)",
+               "extrapolated_nodes": "nodes outside the measured plate (value at its nearest edge)",
+               "max_entry_units": "largest entry (galvo units)",
+               "interpolation_error_units": "interpolation error at the fiducials (galvo units)",
+               "bits_per_mm": "scale (bits per mm)", "grid": "grid points", "filled_points": "points filled from the model",
+               "nodes": "nodes", "step_mm": "node step (mm)", "max_correction_um": "largest correction (µm)"}
+
+
 def _fmt(v) -> str:
     return f"{v:.6g}" if isinstance(v, float) else str(v)
 
@@ -48,16 +57,17 @@ def export_note_rows(t, facts: dict) -> list:
         rows.append(["sign", "measured landing positions of the points commanded at the nominal grid"])
     rows += [[f"range: {k}", _fmt(v)] for k, v in t.facts.items()
              if any(w in k for w in ("values", "table (", "deviation", "corrections"))]
-    rows += [[k.replace("_", " "), _fmt(v)] for k, v in facts.items()]
+    rows += [[FACT_LABELS.get(k, k.replace("_", " ")), _fmt(v)] for k, v in facts.items()]
     return rows
 
 
-def write_export(out: str, data: bytes, t, facts: dict, report: bool = True) -> str | None:
-    """Write the table and, unless ``report`` is false, its note; return the note's path."""
+def write_export(out: str, data: bytes, t, facts: dict, report: bool = True, provenance: dict | None = None) -> str | None:
+    """Write the table and, unless ``report`` is false, its note (headed by ``provenance``); return the note's path."""
     atomic_write_bytes(out, data)
     if not report:
         return None
     path = note_path(out)
     atomic_write_text(path, table_report_html(t, title=f"markcal export — {t.format} table",
-                                                     note_rows=export_note_rows(t, facts)))
+                                                     note_rows=export_note_rows(t, facts),
+                                                     provenance=provenance))
     return path

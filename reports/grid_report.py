@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.galvo_fit import KINDS, PARAM_NAMES
 
@@ -93,7 +93,7 @@ def _deviation_figure(result) -> str:
     x, y, dx, dy = (np.asarray(f[k], float) for k in ("x_nom_mm", "y_nom_mm", "dx_mm", "dy_mm"))
     mag = np.hypot(dx, dy)
     mmax = float(mag.max()) if len(mag) else 0.0
-    k = nice_number(0.9 * result.pitch_mm / mmax) if mmax > 0 else 1.0
+    k = arrow_scale(result.pitch_mm, mmax)
     fig = new_figure(7.2, 6.2)
     ax = fig.add_subplot(111)
     h = result.lens_mm / 2
@@ -129,7 +129,7 @@ def _correction_figure(result) -> str:
     ax.scatter(cmd[:, 0], cmd[:, 1], s=10, c="cyan", label="measured marks")
     ex = result.extrapolated
     if ex.any():
-        ax.scatter(xy[ex, 0], xy[ex, 1], s=3, c="white", marker=".", label="extrapolated nodes")
+        ax.scatter(xy[ex, 0], xy[ex, 1], s=6, c="white", edgecolors="0.35", linewidths=0.4, marker="o", label="extrapolated nodes")
     ax.set_aspect("equal")
     ax.set_xlabel("x wanted (mm)")
     ax.set_ylabel("y wanted (mm)")

@@ -11,7 +11,8 @@ import io
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner", "arrow_key"]
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner",
+           "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
 
@@ -51,8 +52,12 @@ def esc(x) -> str:
     return html.escape(str(x))
 
 
+#: a length below 0.001 of these units is written in the next smaller one (where .3g would use an exponent)
+SMALLER = {"mm": "µm", "µm": "nm"}
+
+
 def num(v, unit: str = "mm") -> str:
-    """A value with sensible digits and its unit; '–' for missing or NaN."""
+    """A value with sensible digits and its unit; '–' for missing or NaN; no exponents for small lengths."""
     if v is None:
         return "–"
     try:
@@ -61,6 +66,8 @@ def num(v, unit: str = "mm") -> str:
         return esc(v)
     if not np.isfinite(v):
         return "–"
+    if unit in SMALLER and 0 < abs(v) < 1e-3:      # 2.86e-05 mm reads as 0.0286 µm, not in exponent form
+        return num(v * 1000.0, SMALLER[unit])
     if v == int(v) and abs(v) < 1e9 and not unit:
         s = f"{int(v):,}"
     elif v == 0:
@@ -85,6 +92,19 @@ def nice_number(x: float) -> float:
     return float(10 ** k)
 
 
+def arrow_scale(pitch: float, max_len: float) -> float:
+    """Magnification (1, 2 or 5 × 10^k, the nearest) making the longest arrow about ⅓ of ``pitch``.
+
+    ``pitch`` is in plot units, ``max_len`` in arrow units; 1 when there is no arrow to draw.
+    """
+    if not (np.isfinite(max_len) and max_len > 0 and np.isfinite(pitch) and pitch > 0):
+        return 1.0
+    x = pitch / (3.0 * max_len)
+    k = np.floor(np.log10(x))
+    cands = [m * 10.0 ** (k + e) for e in (-1, 0, 1) for m in (1.0, 2.0, 5.0)]
+    return float(min(cands, key=lambda c: abs(np.log(c / x))))
+
+
 def new_figure(w_in: float, h_in: float):
     """A matplotlib Figure on an Agg canvas, ``w_in`` x ``h_in`` inches (matplotlib loads on first use)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -98,9 +118,16 @@ def arrow_key(ax, q, length: float, label: str) -> None:
     """Draw the key arrow of quiver ``q`` inside ``ax`` (lower right, on a white box).
 
     ``length`` is in the units of the arrows as passed to ``quiver``; ``label`` says what it means
-    in real units. Inside the axes, the key survives the tight cropping of :func:`png_b64`.
+    in real units. Inside the axes, the key survives the tight cropping of :func:`png_b64`; the y range
+    is extended downwards so that the key's box sits below the data instead of over it.
     """
     from matplotlib.patches import Rectangle
+    ax.autoscale_view()
+    y0, y1 = ax.get_ylim()
+    if y1 > y0:                                   # an upward y axis: room at the bottom for the key
+        ax.set_ylim(y0 - 0.13 * (y1 - y0), y1)
+    else:                                         # image-like (inverted) axis: the bottom is the larger value
+        ax.set_ylim(y0 + 0.13 * (y0 - y1), y1)
     ax.add_patch(Rectangle((0.60, 0.01), 0.385, 0.08, transform=ax.transAxes, facecolor="white", edgecolor="0.55",
                            alpha=0.92, zorder=5))
     key = ax.quiverkey(q, 0.90, 0.05, length, label, labelpos="W", coordinates="axes", color="k",
@@ -135,7 +162,8 @@ def table(header, rows, left_cols: int = 1) -> str:
     h = "".join(f'<th class="{"l" if i < left_cols else ""}">{c}</th>' for i, c in enumerate(header))
     body = "".join("<tr>" + "".join(f'<td class="{"l" if i < left_cols else ""}">{c}</td>'
                                     for i, c in enumerate(r)) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
+    head = f"<tr>{h}</tr>" if any(str(c) for c in header) else ""     # no empty grey header bar
+    return f"<table>{head}{body}</table>"
 
 
 def data_files_footer(files) -> str:
@@ -163,15 +191,10 @@ def _check_rows(summary: dict) -> list:
     return rows
 
 
-def verdict_banner(summary: dict) -> str:
-    """PASS / FAIL / NO TOLERANCE in large type with the checks, then the provenance line ("" without a verdict)."""
-    status = summary.get("verdict")
-    if not status:
+def provenance_line(summary: dict) -> str:
+    """The provenance line of a report (version, date, context, inputs with SHA-256, command); "" without one."""
+    if not summary.get("markcal_version"):
         return ""
-    cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
-    rows = _check_rows(summary)
-    checks = table(["figure", "value", "limit", ""], rows) if rows else \
-        "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
     prov = [f"markcal {esc(summary.get('markcal_version', '?'))}", esc(summary.get("date_utc", ""))]
     for k in ("machine", "lens", "operator", "note"):
         if summary.get(k):
@@ -184,8 +207,23 @@ def verdict_banner(summary: dict) -> str:
         prov.append(f"command <code>{esc(summary['command'])}</code>")
     if summary.get("batch_index"):
         prov.append(f'<a href="{esc(summary["batch_index"])}">back to the batch index</a>')
+    return f'<div class="prov">{" · ".join(prov)}</div>'
+
+
+def verdict_banner(summary: dict) -> str:
+    """PASS / FAIL / NO TOLERANCE in large type with the checks, then the provenance line.
+
+    Without a verdict (a flow judged against the paper, not a tolerance), only the provenance line.
+    """
+    status = summary.get("verdict")
+    if not status:
+        return provenance_line(summary)
+    cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
+    rows = _check_rows(summary)
+    checks = table(["figure", "value", "limit", ""], rows) if rows else \
+        "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
     return (f'<div class="banner {cls}" id="verdict"><span class="big">{esc(status.upper())}</span>{checks}</div>'
-            f'<div class="prov">{" · ".join(prov)}</div>')
+            + provenance_line(summary))
 
 
 def page(title: str, body_parts, source: str | None = None, summary: dict | None = None) -> str:

@@ -61,7 +61,7 @@ def _map(f, m):
     ax.plot(c[:, 0], c[:, 1], "o", ms=7, mfc="none", mec="red", mew=1.5, label="corners")
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
-    ax.legend(loc="lower right", fontsize=7)
+    ax.legend(loc="upper right", fontsize=7)
     what = ("contact boundary at the original-surface level (cyan), pile-up above 5 noise levels (green)."
             if f.kind == "afm" else "information bar left out (orange dashed) where there is one.")
     cap = f"<code>{esc(os.path.basename(f.source))}</code>: corners (red), diagonals (white dashed), {what}"

@@ -41,15 +41,19 @@ def _maps(files):
             fig.colorbar(im, ax=ax, label="height (nm)")
         else:
             ax.imshow(f.image, cmap="gray", extent=_extent(f))
-        for m, i in zip(f.imprints, f.table["id"]):
+        good_col = "cyan" if f.kind == "afm" else "#1565c0"      # cyan vanishes on a light micrograph
+        flags = f.table.get("in_tolerance", [1] * len(f.imprints))
+        for m, i, ok in zip(f.imprints, f.table["id"], flags):
             c = np.vstack([m.corners_um, m.corners_um[:1]])
-            ax.plot(c[:, 0], c[:, 1], "-", color="cyan", lw=0.8)
-            ax.text(m.x_um, m.y_um - 0.8 * m.diameter_um, str(int(i)), color="cyan", fontsize=6, ha="center")
+            ax.plot(c[:, 0], c[:, 1], "-", color=good_col if ok else "#d9342b", lw=0.8 if ok else 1.4)
+            ax.annotate(str(int(i)), (m.x_um, m.y_um), xytext=(0, 6), textcoords="offset points", ha="center",
+                        va="bottom", fontsize=6, color="k" if ok else "#d9342b",
+                        bbox=dict(boxstyle="round,pad=0.1", fc="white", ec="none", alpha=0.75))
         ax.set_xlabel("x (µm)")
         ax.set_ylabel("y (µm)")
         what = "levelled AFM height map" if f.kind == "afm" else "micrograph / illumination"
         parts.append(img(png_b64(fig), f.source, f"<code>{esc(os.path.basename(f.source))}</code>: {what} with "
-                         "the fitted outlines (corners from the facet planes) and imprint ids."))
+                         "the fitted outlines (corners from the facet planes) and imprint ids; red: out of tolerance."))
     return "".join(parts)
 
 
@@ -119,7 +123,7 @@ def _positions(res):
     k = np.arange(ok.sum())
     ax.plot(k, 1000 * t["dx_um"][ok], "o-", ms=3, label="dx")
     ax.plot(k, 1000 * t["dy_um"][ok], "s-", ms=3, label="dy")
-    ax.axhline(100, color="r", lw=0.6, ls="--")
+    ax.axhline(100, color="r", lw=0.6, ls="--", label="±100 nm")
     ax.axhline(-100, color="r", lw=0.6, ls="--")
     ax.set_xlabel("imprint (file order)")
     ax.set_ylabel("error (nm)")
@@ -131,19 +135,22 @@ def _positions(res):
     ax2.set_aspect("equal", "datalim")
     ax2.set_xlabel("dx (nm)")
     ax2.set_ylabel("dy (nm)")
+    fig.subplots_adjust(wspace=0.35)              # "dy (nm)" clear of the left panel
     return img(png_b64(fig), "positional errors",
                "Positional errors after rigid registration of each array to its nominal grid: registered measured "
                "minus nominal (paper Fig. 9); dashed: ±100 nm.")
 
 
 def _gallery(files):
-    items = [(f, m, i) for f in files for m, i in zip(f.imprints, f.table["id"])][:MAX_GALLERY]
+    items = [(f, m, i, ok) for f in files
+             for m, i, ok in zip(f.imprints, f.table["id"], f.table.get("in_tolerance", [1] * len(f.imprints)))
+             ][:MAX_GALLERY]
     if not items:
         return ""
     ncol = 10
     nrow = int(np.ceil(len(items) / ncol))
     fig = new_figure(11, 1.15 * nrow + 0.3)
-    for j, (f, m, i) in enumerate(items):
+    for j, (f, m, i, ok) in enumerate(items):
         ax = fig.add_subplot(nrow, ncol, j + 1)
         z, ext, _ = _crop(f, m)
         ax.imshow(z, cmap="afmhot" if f.kind == "afm" else "gray", extent=ext)
@@ -156,10 +163,15 @@ def _gallery(files):
         ax.set_ylim(ext[2], ext[3])
         ax.set_xticks([])
         ax.set_yticks([])
-        ax.set_title(f"{int(i)}: {m.diameter_um:.2f}", fontsize=6)
+        ax.set_title(f"{int(i)}: {m.diameter_um:.2f} µm", fontsize=6, color="k" if ok else "#d9342b",
+                     fontweight="normal" if ok else "bold")
+        if not ok:                      # out of tolerance: a red frame
+            for sp in ax.spines.values():
+                sp.set_edgecolor("#d9342b")
+                sp.set_linewidth(2)
     more = sum(len(f.imprints) for f in files) - len(items)
     cap = ("Every imprint with its fitted outline (cyan: corners joined; green dashed: circle through the corners, "
-           "paper Fig. 6b); title: id and diameter (µm).") + (f" {more} more not shown." if more > 0 else "")
+           "paper Fig. 6b); title: id and diameter. Red title and frame: out of tolerance (diameter or H/D).") + (f" {more} more not shown." if more > 0 else "")
     return img(png_b64(fig), "gallery", cap)
 
 
@@ -184,6 +196,7 @@ def indents_report_html(res) -> str:
             ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
             ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
+    rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
     from .indent_single_report import single_section
     parts.append(single_section(res.files))
@@ -198,23 +211,25 @@ def indents_report_html(res) -> str:
     if len(bad):
         items = "".join(f"<li><code>{esc(t['file'][i])}</code> #{int(t['id'][i])}: diameter "
                         f"{num(t['diameter_um'][i], 'µm')} (nominal {num(t['nominal_um'][i], 'µm')}, error "
-                        f"{1000 * err[i]:+.0f} nm), H/D {num(t['hd_ratio'][i], '')}</li>" for i in bad[:50])
+                        f"{1000 * err[i]:+.0f} nm)" + (f", H/D {num(t['hd_ratio'][i], '')}" if np.isfinite(t['hd_ratio'][i]) else "")
+                        + "</li>" for i in bad[:50])
         parts.append(f'<div class="warn"><b>{len(bad)} imprint(s) outside the tolerance '
                      f'±{s["tolerance_um"] * 1000:.0f} nm '
                      f"or with H/D &lt; {s['min_hd']}</b><ul>{items}</ul></div>")
     parts.append("<h2>Per-size statistics (paper Table 1)</h2>")
     z = res.sizes
-    parts.append(table(["nominal size", "N", "mean diameter", "σ diameter", "max |error|", "mean H/D", "σ H/D",
-                        "mean depth"],
-                       [[num(z["nominal_um"][i], "µm"), num(z["n"][i], ""), num(z["mean_diameter_um"][i], "µm"),
-                         num(z["sd_diameter_um"][i], "µm"), num(z["max_abs_error_um"][i], "µm"),
-                         num(z["mean_hd"][i], ""), num(z["sd_hd"][i], ""), num(z["mean_depth_nm"][i], "nm")]
-                        for i in range(len(z["n"]))]))
+    head = ["nominal size", "N", "mean diameter", "σ diameter", "max |error|", "mean H/D", "σ H/D", "mean depth"]
+    body = [[num(z["nominal_um"][i], "µm"), num(z["n"][i], ""), num(z["mean_diameter_um"][i], "µm"),
+             num(z["sd_diameter_um"][i], "µm"), num(z["max_abs_error_um"][i], "µm"),
+             num(z["mean_hd"][i], ""), num(z["sd_hd"][i], ""), num(z["mean_depth_nm"][i], "nm")]
+            for i in range(len(z["n"]))]
+    keep = [j for j in range(len(head)) if any(r[j] != "–" for r in body)] or list(range(len(head)))
+    parts.append(table([head[j] for j in keep], [[r[j] for j in keep] for r in body]))   # no all-"–" columns
     parts.append("<h2>Maps</h2>")
     parts.append(_maps(res.files))
-    parts.append("<h2>One imprint in 3D and profiles</h2>")
-    parts.append(_render3d(res.files))
-    parts.append(_profiles(res.files))
+    in3d = _render3d(res.files) + _profiles(res.files)
+    if in3d:                                        # AFM only: no empty section for micrographs
+        parts += ["<h2>One imprint in 3D and profiles</h2>", in3d]
     parts.append("<h2>Positional error</h2>")
     parts.append(_positions(res))
     parts.append("<h2>Every imprint</h2>")

@@ -4,11 +4,17 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.pipeline.flows.pmcal import COMPARED, PmcalResult
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.pm_model import model_to_dict
 
 __all__ = ["pmcal_report_html", "DATA_FILES"]
+
+#: human labels of the compared model parameters
+PARAM_LABELS = {"scale_x_ppm": "scale error x", "scale_y_ppm": "scale error y", "scale_z_ppm": "scale error z",
+                "nonorth_xy_urad": "non-orthogonality x–y", "nonorth_xz_urad": "non-orthogonality x–z",
+                "nonorth_yz_urad": "non-orthogonality y–z", "plane_tilt_x_urad": "surface slope along x",
+                "plane_tilt_y_urad": "surface slope along y"}
 
 DATA_FILES = (("calibration.json", "the chosen method's parameters with units, E terms and F, method, seed"),
               ("methods.csv", "one row per method: F, E terms, time, parameters, errors against truth if known"),
@@ -46,9 +52,14 @@ def _residuals(result: PmcalResult) -> str:
     ax.set_title("axis trajectories")
     ax.legend(fontsize=7)
     ax = fig.add_subplot(132)
-    q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0], rp[:, 1], color="#c0392b")
-    key_um = nice_number(0.6 * max(float(np.hypot(rp[:, 0], rp[:, 1]).max()), 1e-12))
-    arrow_key(ax, q, key_um, f"{key_um * 1e3:g} nm")
+    span_mm = np.ptp(d.c_pose[:, :2], axis=0) / 1000                   # marks spread over the field: mean spacing
+    pitch_mm = float(np.sqrt(max(span_mm[0] * span_mm[1], 1e-12) / max(len(d.c_pose) - 1, 1))) or 1.0
+    rmax_um = float(np.hypot(rp[:, 0], rp[:, 1]).max())
+    k = arrow_scale(pitch_mm, rmax_um)          # mm drawn per µm of residual
+    q = ax.quiver(d.c_pose[:, 0] / 1000, d.c_pose[:, 1] / 1000, rp[:, 0] * k, rp[:, 1] * k, angles="xy",
+                  scale_units="xy", scale=1, color="#c0392b", width=0.006)
+    key_um = nice_number(0.6 * max(rmax_um, 1e-12))
+    arrow_key(ax, q, key_um * k, f"{key_um * 1e3:g} nm")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_title("pose pairs: XY residual")
@@ -88,7 +99,7 @@ def pmcal_report_html(result: PmcalResult) -> str:
     rows = []
     dicts = {n: model_to_dict(f.model) for n, f in result.fits.items()}
     for k, unit in COMPARED:
-        rows.append([esc(k)] + [num(dicts[n][k], unit) for n in result.fits]
+        rows.append([esc(PARAM_LABELS.get(k, k))] + [num(dicts[n][k], unit) for n in result.fits]
                     + ([num(result.truth[k], unit)] if result.truth else []))
     for i, a in enumerate("xyz"):
         rows.append([f"pose rotation {a}"] + [num(dicts[n]["rotvec_urad"][i], "µrad") for n in result.fits]
@@ -96,7 +107,7 @@ def pmcal_report_html(result: PmcalResult) -> str:
     for i, a in enumerate("xyz"):
         rows.append([f"T {a}"] + [num(dicts[n]["T_um"][i], "µm") for n in result.fits]
                     + ([num(result.truth["T_um"][i], "µm")] if result.truth else []))
-    rows.append(["plane c"] + [num(dicts[n]["plane_c_um"], "µm") for n in result.fits]
+    rows.append(["surface height at the origin"] + [num(dicts[n]["plane_c_um"], "µm") for n in result.fits]
                 + ([num(result.truth["plane_c_um"], "µm")] if result.truth else []))
     parts.append(table(head, rows))
     if result.truth:

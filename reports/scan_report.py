@@ -17,7 +17,7 @@ from matplotlib.colors import LogNorm
 from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -39,10 +39,8 @@ DATA_FILES = (
 AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
 
 def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
-    """Magnification making the longest arrow about 0.8 of a pitch."""
-    if not np.isfinite(max_len_mm) or max_len_mm <= 0:
-        return 1.0
-    return nice_number(0.8 * pitch_mm / max_len_mm)
+    """Magnification making the longest arrow about ⅓ of a pitch."""
+    return arrow_scale(pitch_mm, max_len_mm)
 
 
 def _rowcol(fid_id: int, cols: int) -> tuple:
@@ -229,11 +227,16 @@ def _cv_figure(sel) -> str:
     goals = np.asarray(sel.goals_mm2, float)
     fig = new_figure(7.4, 0.45 * len(spreads) + 1.6)
     ax = fig.add_subplot(111)
-    good = cv_table[np.isfinite(cv_table) & (cv_table > 0)]
+    cv_um = cv_table * 1000.0                     # the cell numbers and the colour bar in the same unit
+    good = cv_um[np.isfinite(cv_um) & (cv_um > 0)]
     norm = LogNorm(vmin=good.min(), vmax=good.max()) if len(good) and good.max() > good.min() else None
-    im = ax.imshow(cv_table, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
+    im = ax.imshow(cv_um, cmap="viridis_r", norm=norm, aspect="auto", origin="upper")
     cb = fig.colorbar(im, ax=ax, pad=0.02)
-    cb.set_label("mean CV RMSE (mm)")
+    cb.set_label("mean CV RMSE (µm)")
+    from matplotlib.ticker import LogLocator, StrMethodFormatter
+    cb.ax.yaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    cb.ax.yaxis.set_major_formatter(StrMethodFormatter("{x:g}"))
+    cb.ax.yaxis.set_minor_formatter(StrMethodFormatter(""))
     ax.set_xticks(range(len(goals)))
     ax.set_xticklabels([f"{g:.0e}" for g in goals], rotation=35, ha="right", fontsize=8)
     ax.set_yticks(range(len(spreads)))
@@ -242,11 +245,11 @@ def _cv_figure(sel) -> str:
     ax.set_ylabel("spread σ (mm)")
     if len(good):
         thr = np.sqrt(good.min() * good.max())
-        for i in range(cv_table.shape[0]):
-            for j in range(cv_table.shape[1]):
-                v = cv_table[i, j]
+        for i in range(cv_um.shape[0]):
+            for j in range(cv_um.shape[1]):
+                v = cv_um[i, j]
                 if np.isfinite(v):
-                    ax.text(j, i, f"{v * 1000:.1f}", ha="center", va="center", fontsize=7,
+                    ax.text(j, i, f"{v:.1f}", ha="center", va="center", fontsize=7,
                             color="white" if v > thr else "black")
     bi = int(np.argmin(np.abs(spreads - sel.spread_mm)))
     bj = int(np.argmin(np.abs(np.log(goals) - np.log(sel.mse_goal_mm2))))
@@ -279,7 +282,7 @@ def _field_figure(result) -> str:
     cb = fig.colorbar(im, ax=ax, pad=0.02, shrink=0.9)
     cb.set_label("|command offset| (mm)")
     mmax = float(np.nanmax(mag)) if len(mag) else 0.0
-    k = nice_number(0.9 * step / mmax) if mmax > 0 else 1.0
+    k = arrow_scale(step, mmax)
     q = ax.quiver(xy[pick, 0], xy[pick, 1], d[pick, 0], d[pick, 1], angles="xy", scale_units="xy",
                   scale=1.0 / k, color="white", edgecolor="black", linewidth=0.3, width=0.004)
     key = nice_number(0.6 * mmax) if mmax > 0 else 0.1

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import (arrow_key, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.selfcal import site_xy_mm
 
@@ -32,26 +32,28 @@ def _quiver(result) -> str:
     sol = result.solution
     x, y = _grid(result)
     mag = np.hypot(sol.gx_um, sol.gy_um)
-    scale_mm_per_um = nice_number(0.8 * result.setup.pitch_mm / max(float(mag.max()), 1e-12))
+    scale_mm_per_um = arrow_scale(result.setup.pitch_mm, float(mag.max()))
     fig = new_figure(6.4, 6.0)
     ax = fig.add_subplot(111)
     ax.plot(x, y, ".", color="#999", ms=3)
-    q = ax.quiver(x, y, sol.gx_um * scale_mm_per_um, sol.gy_um * scale_mm_per_um, angles="xy",
-                  scale_units="xy", scale=1, color="#c0392b", width=0.004)
-    key_um = nice_number(0.6 * max(float(mag.max()), 1e-12))
-    arrow_key(ax, q, key_um * scale_mm_per_um, f"{key_um:g} µm")
-    if result.truth:
+    if result.truth:        # truth first, wide and pale, so the estimate drawn over it stays visible
         N = result.setup.n
         tx = np.asarray(result.truth["gx_um"]).reshape(N, N)
         ty = np.asarray(result.truth["gy_um"]).reshape(N, N)
         ax.quiver(x, y, tx * scale_mm_per_um, ty * scale_mm_per_um, angles="xy", scale_units="xy",
-                  scale=1, color="#2c7fb8", width=0.002, alpha=0.8)
+                  scale=1, color="#8ec1e6", width=0.011, zorder=2, label="truth")
+    q = ax.quiver(x, y, sol.gx_um * scale_mm_per_um, sol.gy_um * scale_mm_per_um, angles="xy",
+                  scale_units="xy", scale=1, color="#c0392b", width=0.004, zorder=3, label="estimate")
+    key_um = nice_number(0.6 * max(float(mag.max()), 1e-12))
+    arrow_key(ax, q, key_um * scale_mm_per_um, f"{key_um:g} µm")
+    if result.truth:
+        ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
     ax.set_title(f"stage error G, arrows × {scale_mm_per_um * 1e3:,.0f}")
     cap = (f"Stage error map: each arrow is G at a site, drawn {scale_mm_per_um * 1e3:,.0f}× (paper Fig. 4). "
-           + ("Red: estimate; blue (thin): truth." if result.truth else ""))
+           + ("Red (narrow): estimate, drawn over the truth (pale blue, wide)." if result.truth else ""))
     return img(png_b64(fig), "stage error quiver", cap)
 
 
@@ -72,7 +74,13 @@ def _heatmaps(result) -> str:
         im = ax.imshow(f.T, origin="lower", extent=ext, cmap=cmap, **kw)
         ax.set_title(title, fontsize=9)
         ax.tick_params(labelsize=7)
-        fig.colorbar(im, ax=ax, shrink=0.8)
+        if i >= 3:
+            ax.set_xlabel("x (mm)", fontsize=8)
+        if i % 3 == 0:
+            ax.set_ylabel("y (mm)", fontsize=8)
+        cb = fig.colorbar(im, ax=ax, shrink=0.8)
+        cb.set_label("µm", fontsize=8)
+        cb.ax.tick_params(labelsize=7)
     cap = ("Heat maps over the stage (x right, y up, mm). F is the stage error without its linear "
            "non-orthogonality and scale-difference terms. The predicted standard deviation comes from "
            "the least-squares covariance with the noise level estimated from the residuals: it is the "

@@ -80,8 +80,18 @@ def _fig8(res):
             k = r.sim.t_s >= r.t_end_s - 0.02
             ax2.plot((r.sim.t_s[k] - r.t_end_s) * 1e3, (r.sim.pos_mm[k] - target) * 1e3, color=col, lw=1.2)
         band = res.summary["settle_band_um"]
-        ax2.axhspan(-band, band, color="#cfe8cf", alpha=0.7, lw=0)
+        ax2.axhspan(-band, band, color="#a5d6a7", alpha=0.8, lw=0, zorder=0, label=f"±{band:g} µm settling band")
+        for y in (-band, band):
+            ax2.axhline(y, color="#2e7d32", lw=0.7, ls="--", zorder=1)
+        # linear within a few bands, logarithmic beyond: the ±1 µm band stays visible next to a 1000 µm approach
+        ax2.set_yscale("symlog", linthresh=2 * band, linscale=2.5)
+        lo, hi = ax2.get_ylim()
+        ticks = [v for v in (-1000, -100, -10, -band, 0, band, 10, 100, 1000) if lo <= v <= hi]
+        ax2.set_yticks(ticks, [f"{v:g}" for v in ticks])
+        ax2.minorticks_off()
         ax2.set_ylabel("position − target (µm)")
+        if i == 0:
+            ax2.legend(fontsize=8, loc="lower right")
         if i == len(strokes) - 1:
             ax1.set_xlabel("t (ms)")
             ax2.set_xlabel("t − end of reference (ms)")
@@ -89,8 +99,10 @@ def _fig8(res):
             ax1.legend(fontsize=8)
         for ax in (ax1, ax2):
             ax.grid(alpha=0.3)
+    fig.subplots_adjust(hspace=0.42, wspace=0.3)
     return img(png_b64(fig), "Fig. 8", "Fig. 8 (paper layout): point response without and with the CCA; right: "
-               f"approach to the target with the ±{res.summary['settle_band_um']:g} µm band (green); t = 0 at the end of "
+               f"approach to the target with the ±{res.summary['settle_band_um']:g} µm band (green), vertical axis "
+               f"linear within ±{2 * res.summary['settle_band_um']:g} µm and logarithmic beyond; t = 0 at the end of "
                "each controller's reference.")
 
 
@@ -130,6 +142,7 @@ def _fig10(res):
         if i == 0:
             ax.legend(fontsize=8)
     ax.set_xlabel("t within the evaluated window (s)")
+    fig.subplots_adjust(hspace=0.5)
     return img(png_b64(fig), "Fig. 10", f"Fig. 10 (paper layout): tracking error at {amp:g} mm amplitude, evaluated "
                "period, without and with the CCA.")
 
@@ -277,6 +290,7 @@ def _overview(res):
     te, ee = _envelope(lg.t_s, (lg.ref_mm - lg.pos_mm) * 1e3)
     ax2.plot(te, ee, color=C_CCA, lw=0.8)
     ax2.set_xlabel("t (s)"); ax2.set_ylabel("reference − position (µm)"); ax2.grid(alpha=0.3)
+    fig.subplots_adjust(wspace=0.3)               # the right panel's label clear of the left panel
     many = len(lg.t_s) > 4000
     return img(png_b64(fig), "log", f"The whole log ({len(lg.t_s):,} samples"
                + ("; drawn as the minimum and maximum of every " f"{len(lg.t_s) // 2000} samples" if many else "")

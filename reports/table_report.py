@@ -3,32 +3,33 @@ from __future__ import annotations
 
 import numpy as np
 
-from markcal.reports.html import arrow_key, esc, img, new_figure, nice_number, num, page, png_b64, table
+from markcal.reports.html import arrow_key, arrow_scale, esc, img, new_figure, nice_number, num, page, png_b64, table
 
 __all__ = ["table_report_html", "structure_rows"]
 
 
 def _figure(t) -> str:
-    fig = new_figure(13, 4.4)
-    ax = fig.add_subplot(1, 3, 1)
+    fig = new_figure(13, 5.0)
+    gs = fig.add_gridspec(1, 3, width_ratios=[1.5, 1, 1])      # the arrow map larger: its arrows stay visible
+    ax = fig.add_subplot(gs[0, 0])
     step = max(1, len(t.x_mm) // 12)
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(np.hypot(t.u, t.v).max())
-    k = nice_number(0.8 * pitch / vmax) if vmax > 0 else 1.0
+    k = arrow_scale(pitch, vmax)
     q = ax.quiver(gx[::step, ::step], gy[::step, ::step], t.u[::step, ::step] * k, t.v[::step, ::step] * k,
                   angles="xy", scale_units="xy", scale=1, color="#c0392b", width=0.006)
-    key = nice_number(0.6 * vmax) if vmax > 0 else 1.0
+    key = nice_number(vmax) if vmax > 0 else 1.0
     arrow_key(ax, q, key * k, f"{key:g} {t.unit}")
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
-    ax.set_title(f"{t.what}, arrows × {k:g} (mm per {t.unit})", fontsize=9)
+    ax.set_title(f"{t.what}\narrows: 1 {t.unit} drawn as {k:g} mm", fontsize=9)
     dx = float(np.diff(t.x_mm).mean()) / 2 if len(t.x_mm) > 1 else 0.5
     dy = float(np.diff(t.y_mm).mean()) / 2 if len(t.y_mm) > 1 else 0.5
     extent = [t.x_mm[0] - dx, t.x_mm[-1] + dx, t.y_mm[0] - dy, t.y_mm[-1] + dy]
     for i, (comp, name) in enumerate(((t.u, "x component"), (t.v, "y component"))):
-        axc = fig.add_subplot(1, 3, 2 + i)
+        axc = fig.add_subplot(gs[0, 1 + i])
         lim = float(np.max(np.abs(comp))) or 1.0
         im = axc.imshow(comp, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent)
         fig.colorbar(im, ax=axc, shrink=0.8, label=t.unit)
@@ -62,11 +63,11 @@ def structure_rows(t) -> list:
     return rows
 
 
-def table_report_html(t, title: str | None = None, note_rows: list | None = None) -> str:
+def table_report_html(t, title: str | None = None, note_rows: list | None = None, provenance: dict | None = None) -> str:
     """One self-contained page for an :class:`~markcal.pipeline.flows.export.Inspected` table.
 
     ``note_rows`` (the export note) come first when given; structural warnings
-    are shown at the top in red.
+    are shown at the top in red; ``provenance`` (version, date, command, inputs) heads the page.
     """
     mag = np.hypot(t.u, t.v)
     parts = [f'<div class="note">{esc(w)}</div>' for w in t.warnings]
@@ -82,4 +83,4 @@ def table_report_html(t, title: str | None = None, note_rows: list | None = None
               table(["", ""], [[esc(a), esc(b)] for a, b in structure_rows(t)]), "<h2>Field</h2>", _figure(t),
               "<p>What the public sources leave open about the format (node spacing, index order, sign) is "
               "read with the options shown above; see the README, section “Correction tables”.</p>"]
-    return page(title or f"markcal inspect — {t.format} table", parts, source=t.path)
+    return page(title or f"markcal inspect — {t.format} table", parts, source=t.path, summary=provenance)

@@ -5,6 +5,7 @@ Needs Debian's ``chromium`` (``make test`` installs it when missing; a test neve
 packages). Without it the test is skipped on a developer's machine and fails in CI (``CI=true``),
 where a missing browser is a broken setup, not a reason to test less.
 """
+import contextlib
 import os
 import shutil
 import subprocess
@@ -62,7 +63,9 @@ def _check_page(pw_page, url):
     return n_img, hrefs
 
 
-def test_index_and_report_in_chromium(batch_out):
+@contextlib.contextmanager
+def _browser():
+    """A headless Chromium driven by playwright (skipped, or failed in CI, when either is missing)."""
     exe = _chromium()
     try:
         from playwright import sync_api
@@ -71,22 +74,59 @@ def test_index_and_report_in_chromium(batch_out):
     with sync_api.sync_playwright() as p:
         browser = p.chromium.launch(executable_path=exe, headless=True, args=["--no-sandbox"])
         try:
-            page = browser.new_page()
-            n_img, hrefs = _check_page(page, "file://" + os.path.join(batch_out, "index.html"))
-            assert page.is_visible("table#summary")
-            n_rows = page.evaluate("document.querySelectorAll('#summary tbody tr').length")
-            assert n_rows == 4
-            assert n_img >= 2                      # servo and selfcal trend plots
-            reports = [h for h in hrefs if h.endswith("report.html")]
-            assert len(reports) == 3               # every processed input links its report
-            # sorting and filtering work in the page
-            page.click("#summary th >> nth=3")
-            page.select_option("#st", "error")
-            assert page.evaluate("Array.from(document.querySelectorAll('#summary tbody tr'))"
-                                 ".filter(r => r.style.display !== 'none').length") == 1
-            _check_page(browser.new_page(), reports[0])
+            yield browser
         finally:
             browser.close()
+
+
+def test_index_and_report_in_chromium(batch_out):
+    with _browser() as browser:
+        page = browser.new_page()
+        n_img, hrefs = _check_page(page, "file://" + os.path.join(batch_out, "index.html"))
+        assert page.is_visible("table#summary")
+        n_rows = page.evaluate("document.querySelectorAll('#summary tbody tr').length")
+        assert n_rows == 4
+        assert n_img >= 2                      # servo and selfcal trend plots
+        reports = [h for h in hrefs if h.endswith("report.html")]
+        assert len(reports) == 3               # every processed input links its report
+        # sorting and filtering work in the page
+        page.click("#summary th >> nth=3")
+        page.select_option("#st", "error")
+        assert page.evaluate("Array.from(document.querySelectorAll('#summary tbody tr'))"
+                             ".filter(r => r.style.display !== 'none').length") == 1
+        _check_page(browser.new_page(), reports[0])
+
+
+def _first_screen(pw_page, url, selector):
+    """Open ``url`` at 1400 × 900 and return whether ``selector`` lies wholly inside that first screen."""
+    pw_page.set_viewport_size({"width": 1400, "height": 900})
+    _check_page(pw_page, url)
+    box = pw_page.locator(selector).first.bounding_box()
+    return box is not None and box["y"] >= 0 and box["y"] + box["height"] <= 900
+
+
+@pytest.fixture(scope="module")
+def single_reports(batch_out, tmp_path_factory):
+    """Reports of the single commands the batch does not run: export note, inspect, path, drift."""
+    d = tmp_path_factory.mktemp("single")
+    stage = os.path.join(batch_out, "selfcal", "session01")
+    assert main(["export", "a3200", stage, "--out", str(d / "stage.cal"), "--quiet", "--operator", "QA"]) == 0
+    assert main(["inspect", str(d / "stage.cal"), "--out", str(d / "ins"), "--quiet"]) == 0
+    assert main(["render", "path", "--n", "40", "--seed", "1", "--out", str(d / "job"), "--quiet"]) == 0
+    assert main(["path", str(d / "job" / "job.csv"), "--out", str(d / "path"), "--quiet"]) in (0, 4)
+    assert main(["render", "pmcal", "--seed", "1", "--pose-grid", "3", "--out", str(d / "pm"), "--quiet"]) == 0
+    assert main(["drift", str(d / "pm" / "drift.csv"), "--out", str(d / "drift"), "--quiet"]) == 0
+    return {"export note": (d / "stage.cal.html", ".prov"), "inspect": (d / "ins" / "report.html", ".prov"),
+            "path": (d / "path" / "report.html", "#verdict"), "drift": (d / "drift" / "report.html", ".prov"),
+            "selfcal (batch)": (os.path.join(stage, "report.html"), "#verdict"),
+            "servo (batch)": (os.path.join(batch_out, "servo", "trace01", "report.html"), "#verdict")}
+
+
+def test_every_report_kind_shows_verdict_or_provenance_on_the_first_screen(single_reports):
+    with _browser() as browser:
+        off = [kind for kind, (path, sel) in single_reports.items()
+               if not _first_screen(browser.new_page(), "file://" + str(path), sel)]
+    assert off == [], f"verdict / provenance not on the first 1400 x 900 screen: {off}"
 
 
 def test_dump_dom_of_index(batch_out):
