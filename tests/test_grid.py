@@ -93,13 +93,16 @@ def test_grid_to_cor_on_the_true_machine(tmp_path, seed, mirror):
     extra = ["--seed", str(seed)] + (["--mirror"] if mirror else [])
     src, truth = _render_cli(tmp_path, *extra)
     out = tmp_path / "out"
-    assert main(["grid", str(src / "measured.csv"), "--out", str(out), "--lens-mm", "110", "--quiet"]) == 0
+    one_step = tmp_path / "one_step.cor"
+    assert main(["grid", str(src / "measured.csv"), "--out", str(out), "--lens-mm", "110", "--quiet",
+                 "--cor", str(one_step)]) == 0
     s = json.loads((out / "summary.json").read_text())
     assert s["mirrored"] is mirror
     assert s["cv_rmse_mm"] <= 1.3 * np.sqrt(2) * 0.02
     assert s["cv_rmse_physical_rbf_mm"] < s["cv_rmse_rbf_mm"]
     cor = tmp_path / "t.cor"
     assert main(["export", "cor", str(out), "--lens-mm", "110", "--out", str(cor), "--quiet"]) == 0
+    assert cor.read_bytes() == one_step.read_bytes()         # grid --cor writes what export cor writes
     table, upm = decode_cor(cor.read_bytes())
     assert upm == pytest.approx(65536 / 110)
     machine = _machine(truth)
