@@ -158,8 +158,9 @@ def test_grid_to_cor_on_the_true_machine(tmp_path, seed, mirror):
     _, before_in = correction_residual(machine, lambda w: w, 44, 44, 2.0)
     _, inside = correction_residual(machine, table.command, 44, 44, 2.0)
     _, field = correction_residual(machine, table.command, 55, 55, 2.0)
-    assert _rms(inside) <= 0.03 < _rms(before_in)
-    assert _rms(field) <= 0.08
+    # measured on seeds 1, 2: 0.0079 / 0.0067 mm inside, 0.0129 / 0.0141 mm over the field (goals 0.03 / 0.08)
+    assert _rms(inside) <= 0.015 < 0.1 < _rms(before_in)
+    assert _rms(field) <= 0.028
     if not mirror:
         return
     # the other formats read the same folder
@@ -169,6 +170,30 @@ def test_grid_to_cor_on_the_true_machine(tmp_path, seed, mirror):
                      *extra]) == 0
     a3 = inspect_table(tmp_path / "t.a3200")
     assert np.nanmax(np.hypot(a3.u, a3.v)) == pytest.approx(1e3 * s["max_correction_mm"], abs=1e-3)
+
+
+@pytest.mark.parametrize("seed,mirror", [(101, True), (102, False)])
+def test_physical_rbf_predicts_the_true_landing_better_than_a_spline(tmp_path, seed, mirror):
+    """Issue 14's claim: k-fold CV prediction error against the true (noise-free) landing of the held-out marks,
+    physical+rbf at least 10 % below the thin-plate spline alone on the same folds (9 x 9, 110 mm, 0.02 mm).
+
+    Truth: the renderer's noise-free landings, put through the measuring frame and the flow's registration.
+    Measured: ratio 0.37 (seed 101), 0.42 (seed 102); limit 0.75 (2x the worst, and inside the goal's 0.9).
+    """
+    from markcal.pipeline.flows.grid import GridOptions, run_grid
+    from markcal.reports.files import write_csv
+    r = render_grid(seed, GridRenderOptions(mirror=mirror))
+    path = tmp_path / "m.csv"
+    write_csv(path, {"x_cmd_mm": r.cmd_mm[:, 0], "y_cmd_mm": r.cmd_mm[:, 1],
+                     "x_meas_mm": r.meas_mm[:, 0], "y_meas_mm": r.meas_mm[:, 1]})
+    res = run_grid(path, GridOptions(lens_mm=110.0))
+    a = np.radians(r.truth["frame_angle_deg"])
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag([1.0, -1.0 if mirror else 1.0])
+    clean = res.registration.apply(r.land_mm @ rot.T + np.array(r.truth["frame_shift_mm"]))
+    land = np.column_stack([res.fiducials["x_meas_mm"], res.fiducials["y_meas_mm"]])
+    assert _rms(land - clean) == pytest.approx(np.sqrt(2) * 0.02, rel=0.25)      # the frame is undone: noise left
+    err = {k: _rms(e + land - clean) for k, e in res.choice.cv_errors_mm.items()}
+    assert err["physical+rbf"] <= 0.75 * err["rbf"]
 
 
 def test_missing_marks_and_units_input(tmp_path):
