@@ -292,6 +292,12 @@ def test_bad_inputs(tmp_path, capsys):
                                for i in range(-1, 2) for j in range(-1, 2)))
     _fails(capsys, units, out, ["--units-per-mm"])
     _fails(capsys, tmp_path / "absent.csv", out, ["no such file"])
+    capsys.readouterr()
+    assert main(["grid", str(_csv(tmp_path / "good.csv", rows)), "--out", str(out), "--cor", str(tmp_path),
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--cor must name the .cor file" in err[0], err
+    assert not os.path.exists(out / "summary.json")
     sheet = tmp_path / "sheet"
     main(["render", "grid-job", "--out", str(sheet)])
     _fails(capsys, sheet / "measure.csv", out, ["only 0 measured"])
