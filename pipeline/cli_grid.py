@@ -13,6 +13,8 @@ def cmd_grid(args) -> int:
     from markcal.pipeline.registry import exit_status, get_flow, run_and_write
 
     say = progress(args.quiet)
+    if args.cor and (os.path.isdir(args.cor) or os.path.realpath(args.cor) == os.path.realpath(args.measured)):
+        raise MarkcalError("--cor must name the .cor file to write (not a folder, not the input)", args.cor)
     options = {k: getattr(args, k) for k in get_flow("grid").descriptor.options if getattr(args, k) is not None}
     res, paths = run_and_write("grid", args.measured, args.out, options=options, progress=say, **run_options(args))
     s = res.summary
@@ -21,6 +23,15 @@ def cmd_grid(args) -> int:
         f"{s['folds']}-fold CV error (mm): {cv}; using {s['model']}; {s['n_extrapolated']} of {s['n_nodes']} "
         "nodes extrapolated")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
+    if args.cor:
+        # what `markcal export cor OUT --lens-mm LENS --out FILE --no-report` writes, without a second start-up
+        from markcal.pipeline.flows.export import export_table
+        from markcal.reports.files import atomic_write_bytes
+        data, facts = export_table("cor", args.out, lens_mm=res.lens_mm)
+        atomic_write_bytes(args.cor, data)
+        say(f".cor over the {res.lens_mm:g} mm lens field ({facts['units_per_mm']:.4g} units/mm), largest entry "
+            f"{facts['max_entry_units']:.1f} units")
+        print(os.path.abspath(args.cor))
     return exit_status(res.summary)
 
 
@@ -66,6 +77,9 @@ def register(sub, render_sub) -> None:
     g.add_argument("--grid-step-mm", type=float, default=None, help="correction_grid.csv step (default lens / 50)")
     g.add_argument("--folds", type=int, default=None, help="k of the k-fold cross-validation")
     g.add_argument("--seed", type=int, default=None, help="seed of the CV folds")
+    g.add_argument("--cor", metavar="FILE", default=None,
+                   help="also write the correction as a .cor table over the lens field (what `markcal export cor "
+                        "OUT --lens-mm LENS --out FILE` writes with its defaults)")
     g.add_argument("--no-report", action="store_true", help="skip report.html")
     g.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_run_options(g)

@@ -11,7 +11,6 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.reports.files import OutputFolder
-from markcal.reports.grid_report import grid_report_html
 from markcal.reports.scan_outputs import deviations_table
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "line", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
@@ -58,5 +57,6 @@ def write_grid_outputs(result, out_dir, report: bool = True) -> dict:
                                 "gx_um": 1e3 * dxy[:, 0], "gy_um": 1e3 * dxy[:, 1]})
     out.json("model.json", model_document(result))
     if report:
+        from markcal.reports.grid_report import grid_report_html      # here: matplotlib loads only for reports
         out.text("report.html", grid_report_html(result))
     return out.finish(result.summary)

@@ -4,7 +4,6 @@ from __future__ import annotations
 import numpy as np
 
 from markcal.reports.files import OutputFolder
-from markcal.reports.scan_report import scan_report_html
 
 FIDUCIAL_COLUMNS = ("id", "row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm", "dx_mm", "dy_mm",
                     "x_scanner_mm", "y_scanner_mm", "z_scanner_mm", "ring_radius_scale", "line_width_mm",
@@ -35,6 +34,7 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     out.csv("corrected_targets.csv", result.targets)
     out.json("model.json", _model_document(result))
     if report:
+        from markcal.reports.scan_report import scan_report_html      # here: matplotlib loads only for reports
         out.text("report.html", scan_report_html(result))
     return out.finish(result.summary)
 

@@ -135,13 +135,28 @@ class GridModel:
         return out
 
     def command(self, wanted_mm: np.ndarray, tol_mm: float = 1e-9, max_iter: int = 50) -> np.ndarray:
-        """Commands (n, 2) mm that land on the wanted positions (n, 2) mm (fixed-point inversion)."""
+        """Commands (n, 2) mm that land on the wanted positions (n, 2) mm.
+
+        Chord-Newton: the step is the miss times the inverse Jacobian of the
+        physical part at the wanted position (finite differences; the identity
+        without one), so each iteration costs one evaluation of the model.
+        """
         w = np.atleast_2d(np.asarray(wanted_mm, float))
         c = w.copy()
+        jinv = None
+        if self.physical is not None:
+            h_mm = 1e-3
+            f0 = self.physical.land(w)
+            jac = np.stack([(self.physical.land(w + [h_mm, 0.0]) - f0) / h_mm,
+                            (self.physical.land(w + [0.0, h_mm]) - f0) / h_mm], axis=2)   # d land_i / d cmd_j
+            jinv = np.linalg.inv(jac)
+        todo = np.arange(len(w))
         for _ in range(max_iter):
-            step = w - self.land(c)
-            c += step
-            if np.max(np.abs(step), initial=0.0) < tol_mm:
+            miss = w[todo] - self.land(c[todo])
+            step = miss if jinv is None else np.einsum("nij,nj->ni", jinv[todo], miss)
+            c[todo] += step
+            todo = todo[np.max(np.abs(step), axis=1) >= tol_mm]
+            if not len(todo):
                 break
         return c
 

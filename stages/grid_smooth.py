@@ -15,17 +15,18 @@ from dataclasses import dataclass
 import numpy as np
 
 #: smoothing values tried (normalised kernel units)
-LAMBDAS = tuple(10.0 ** np.arange(-7.0, 1.01, 0.5))
+LAMBDAS = tuple(10.0 ** np.arange(-7.0, 4.01, 0.5))
 
 
-def _kernel(r):
-    with np.errstate(divide="ignore", invalid="ignore"):
-        k = r * r * np.log(r)
-    return np.where(r > 0, k, 0.0)
+def _kernel2(r2):
+    """phi(r) = r^2 log r from squared distances: r2 log(r2) / 2, 0 at r = 0."""
+    r2 = np.maximum(r2, 1e-300)             # phi -> 0 as r -> 0; no log(0)
+    return 0.5 * r2 * np.log(r2)
 
 
-def _dist(a, b):
-    return np.sqrt(np.maximum((a * a).sum(1)[:, None] + (b * b).sum(1)[None, :] - 2 * a @ b.T, 0.0))
+def _dist2(a, b):
+    """Squared distances (n, m) between points a (n, 2) and b (m, 2)."""
+    return (a[:, :1] - b[:, 0]) ** 2 + (a[:, 1:] - b[:, 1]) ** 2
 
 
 def frame_of(xy_mm: np.ndarray) -> tuple:
@@ -54,7 +55,7 @@ class ThinPlate:
         """Values (n, k) mm at positions (n, 2) mm."""
         u = (np.atleast_2d(np.asarray(xy_mm, float)) - self.centre_mm) / self.scale_mm
         c = (self.centres_mm - self.centre_mm) / self.scale_mm
-        return _kernel(_dist(u, c)) @ self.weights_mm + np.column_stack([np.ones(len(u)), u]) @ self.affine_mm
+        return _kernel2(_dist2(u, c)) @ self.weights_mm + np.column_stack([np.ones(len(u)), u]) @ self.affine_mm
 
     def to_dict(self) -> dict:
         return {"kind": "thin-plate spline: f = sum_j w_j r_j^2 ln r_j + a0 + a1 u + a2 v, "
@@ -98,7 +99,7 @@ def fit_thin_plate(xy_mm: np.ndarray, values_mm: np.ndarray, lams=LAMBDAS) -> tu
     centre, scale = frame_of(xy)
     u = (xy - centre) / scale
     n = len(u)
-    k = _kernel(_dist(u, u))
+    k = _kernel2(_dist2(u, u))
     p = np.column_stack([np.ones(n), u])
     q, _ = np.linalg.qr(p, mode="complete")
     z = q[:, 3:]
