@@ -103,6 +103,7 @@ def run_servo(cfg: ServoConfig | None = None, source: str = "paper defaults", pr
                 runs.append(_sine_run(cfg, dp, gains, amp, freq, ctrl, rc))
     say(f"{len(cfg.amplitudes_mm) * len(cfg.frequencies_hz)} sinusoids simulated")
     summary = _sim_summary(cfg, runs, rc, check, paper)
+    summary["reading"] = next((n for n, rd in NAMED_READINGS.items() if rd == cfg.reading), "custom")
     readings = []
     if compare_readings:
         for name, rd in NAMED_READINGS.items():
