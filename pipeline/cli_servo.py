@@ -5,7 +5,6 @@ import os
 
 from markcal.pipeline.cli_common import add_run_options
 from markcal.stages.errors import MarkcalError
-from markcal.stages.servo_reading import NAMED_READINGS as READING_NAMES
 
 
 #: command-line flags of the drive-log options (flow option name -> flag)
@@ -48,7 +47,10 @@ def cmd_servo(args) -> int:
         if args.settle_band_um is not None:
             cfg = replace(cfg, settle_band_um=args.settle_band_um)
         if args.reading is not None:
-            cfg = replace(cfg, reading=READING_NAMES[args.reading])
+            from markcal.stages.servo_reading import NAMED_READINGS
+            if args.reading not in NAMED_READINGS:
+                raise MarkcalError(f"--reading {args.reading!r} unknown (one of {', '.join(NAMED_READINGS)})")
+            cfg = replace(cfg, reading=NAMED_READINGS[args.reading])
         res = run_servo(cfg, source=os.path.abspath(args.config) if args.config else "paper defaults (no config)",
                         progress=say)
         say("writing tables and report")
@@ -127,9 +129,9 @@ def register(sub, render_sub) -> None:
                     help="settling band half width, µm (default: 1 for logs, the reading's band for the simulation)")
     sv.add_argument("--settle-band-pct", type=float, default=None,
                     help="settling band half width in %% of each move's stroke (logs; instead of --settle-band-um)")
-    sv.add_argument("--reading", choices=list(READING_NAMES), default=None,
-                    help="how the paper's garbled plant and unit-less gains are read (simulation; default: the "
-                         "config's [model] reading, else 'best'; see docs/servo.md)")
+    sv.add_argument("--reading", metavar="NAME", default=None,
+                    help="how the paper's garbled plant and unit-less gains are read, a named reading "
+                         "(simulation; default: the config's [model] reading, else 'best'; names in docs/servo.md)")
     sv.add_argument("--no-report", action="store_true", help="skip report.html")
     sv.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_run_options(sv)
