@@ -165,6 +165,9 @@ NAMED_READINGS = {
     "no_a0": Reading(plant="no_a0"),
     "plant_um": Reading(plant_unit="um"),
     "b0_468": Reading(b0_scale=0.1, band="2um"),
+    # the best score of the second search (0.194; 15 of 16 numbers): the default with the plant input
+    # clipped at +-20 V -- only the start-up of the sines clips, so its 2 Hz error is a spike, not a sine
+    "sat20": replace(DEFAULT_READING, u_max_v=20.0),
 }
 
 
