@@ -123,3 +123,28 @@ def test_reading_units_by_hand():
     assert 1.0 / g3.ki == pytest.approx(1.0 / 0.422 / 1e-4) and g3.kd == pytest.approx(0.193e-4)
     _, g4 = reading_params(Reading(feedforward="none"))
     assert g4.kf == 0.0
+
+
+def test_reading_option_and_config_key(tmp_path, capsys):
+    import json
+
+    from markcal.pipeline.cli import main
+    cfg = tmp_path / "small.toml"
+    cfg.write_text('[step]\nstrokes_mm = [10.0]\n[sine]\namplitudes_mm = [5.0]\nfrequencies_hz = [2.0]\n'
+                   '[model]\nreading = "sat20"\n')
+    assert main(["servo", str(cfg), "--out", str(tmp_path / "a"), "--no-report", "--quiet"]) == 0
+    s = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert s["reading"] == "sat20" and s["reading_u_max_v"] == 20.0 and s["reading_b0_scale"] == 0.1
+    # the option wins over the config key; "printed" reads b0 = 4683.3 with a0
+    assert main(["servo", str(cfg), "--reading", "printed", "--out", str(tmp_path / "b"), "--no-report",
+                 "--quiet"]) == 0
+    s = json.loads((tmp_path / "b" / "summary.json").read_text())
+    assert s["reading"] == "printed" and s["reading_b0_scale"] == 1.0 and s["reading_plant"] == "a0"
+    capsys.readouterr()
+    assert main(["servo", "--reading", "nonsense", "--out", str(tmp_path / "c"), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--reading 'nonsense' unknown (one of best, printed" in err[0]
+    assert not (tmp_path / "c" / "summary.json").exists()
+    cfg.write_text('[model]\nreading = "nonsense"\n')
+    assert main(["servo", str(cfg), "--out", str(tmp_path / "d"), "--quiet"]) == 1
+    assert "must be one of best, printed" in capsys.readouterr().err
