@@ -7,8 +7,21 @@ paper's baseline ("without CCA") cases -- S-curve moves of 10/20/30 mm at
 0.1 m/s and 10 m/s^2, 10 mm sines at 0.1-2 Hz -- and scored by the RMS of
 ln(ours / paper) over Table 1 (overshoot, settling) and Table 2 (MAE, STD).
 
-Run: .venv/bin/python benchmarks/servo_readings.py [--top N] [--markdown]
+Run: .venv/bin/python benchmarks/servo_readings.py [--top N] [--markdown] [--stage2] [--diagnose]
 The metric-only choices (band, origin, sine window) reuse one simulation.
+
+``--stage2`` (issue 15, second pass) takes the ``--bases`` best distinct
+plant/unit/integral readings of the first search and crosses them with the
+choices the first search left fixed: sine phase (from 0 at full speed, or from
+its crest at rest), PID per sample (no Ts), a derivative filter, saturation of
+the plant input, what Kf multiplies (velocity, acceleration, nothing) and a
+1 ms sampling period -- with every jerk, band, origin and sine window.
+
+``--diagnose`` fits what Table 2 asks of a linear loop: with a plant
+b0/(s^2 + a1 s) under feed-forward and PID, the steady-state tracking error of
+a sine is |E/R| ~ w sqrt(c^2 + w^2) / k at these frequencies, k = b0 Kp and
+c = a1 - Kf b0; the fit of (c, k) to Table 2's STD rows is printed next to
+each named reading's own (c, k) and the k that Table 1's overshoot asks for.
 """
 from __future__ import annotations
 
@@ -19,7 +32,7 @@ import time
 from dataclasses import replace
 
 from markcal.stages.servo_reading import (BANDS, DEFAULT_READING, PAPER_T1_BASE, PAPER_T2_BASE, Reading,
-                                          baseline_rows, score_rows)
+                                          baseline_rows_many, score_rows)
 
 DYNAMIC = {   # choices that change the simulation
     "plant": ("a0", "no_a0"),
@@ -34,25 +47,97 @@ METRIC = {"band": BANDS, "origin": ("end", "start")}
 WINDOWS = (("last", 3.0), ("whole", 2.0), ("whole", 3.0), ("whole", 5.0))
 
 
+def _cross(base):
+    """Yield (reading, rows, score) for ``base`` with every jerk, band, origin and sine window.
+
+    The sines are simulated once (jerk, band and origin do not touch them), the
+    moves once per jerk; the windows, bands and origins only re-measure.
+    """
+    wins = [replace(base, sine_window=w, sine_periods=n) for w, n in WINDOWS]
+    sines = baseline_rows_many(base, wins, strokes_mm=())
+    bos = list(itertools.product(*METRIC.values()))
+    for jerk in JERKS:
+        bj = replace(base, jerk_mm_s3=jerk)
+        steps = baseline_rows_many(bj, [replace(bj, band=b, origin=o) for b, o in bos], freqs_hz=())
+        for (band, origin), st in zip(bos, steps):
+            for (w, n), sn in zip(WINDOWS, sines):
+                rows = {"t1": st["t1"], "t2": sn["t2"]}
+                yield replace(bj, band=band, origin=origin, sine_window=w, sine_periods=n), rows, score_rows(rows)
+
+
 def search():
-    """Yield (reading, rows, score) for every combination."""
+    """Yield (reading, rows, score) for every combination of the first search."""
     keys = list(DYNAMIC)
     for combo in itertools.product(*DYNAMIC.values()):
-        base = Reading(**dict(zip(keys, combo)))
-        # the sine rows do not depend on jerk / band / origin: simulate them once per window
-        sines = {w: baseline_rows(replace(base, sine_window=w[0], sine_periods=w[1]), strokes_mm=())["t2"]
-                 for w in WINDOWS}
-        for jerk in JERKS:
-            steps = {}
-            for band, origin in itertools.product(*METRIC.values()):
-                rd = replace(base, jerk_mm_s3=jerk, band=band, origin=origin)
-                steps[(band, origin)] = baseline_rows(rd, freqs_hz=())["t1"]
-            for (band, origin), t1 in steps.items():
-                for w in WINDOWS:
-                    rd = replace(base, jerk_mm_s3=jerk, band=band, origin=origin, sine_window=w[0],
-                                 sine_periods=w[1])
-                    rows = {"t1": t1, "t2": sines[w]}
-                    yield rd, rows, score_rows(rows)
+        yield from _cross(Reading(**dict(zip(keys, combo))))
+
+
+#: the second search: choices crossed with the best bases of the first
+STAGE2 = {
+    "sine_phase": ("sin", "cos"),
+    "pid_form": ("ts", "sample"),
+    "d_filter_hz": (math.inf, 1000.0, 200.0),
+    "u_max_v": (math.inf, 30.0, 20.0, 15.0, 10.0, 5.0),
+    "feedforward": ("velocity", "accel", "none"),
+    "ts_s": (0.0, 1e-3),
+}
+
+
+def _stage1_bases(n_bases):
+    """The ``n_bases`` best distinct dynamic readings (plant, units, integral) of the first search."""
+    best = {}
+    for rd, rows, sc in search():
+        key = tuple(getattr(rd, k) for k in DYNAMIC)
+        if key not in best or sc["score"] < best[key]:
+            best[key] = sc["score"]
+    keys = sorted(best, key=best.get)[:n_bases]
+    return [Reading(**dict(zip(DYNAMIC, k))) for k in keys]
+
+
+def search2(bases):
+    """Yield (reading, rows, score): each base crossed with ``STAGE2``, every jerk, band, origin, window."""
+    keys = list(STAGE2)
+    for base in bases:
+        for combo in itertools.product(*STAGE2.values()):
+            yield from _cross(replace(base, **dict(zip(keys, combo))))
+
+
+def diagnose():
+    """Print the (c, k) Table 2 asks of a linear loop and each named reading's (c, k)."""
+    import numpy as np
+    from scipy.optimize import least_squares
+
+    from markcal.stages.servo_reading import NAMED_READINGS, reading_params
+    f = np.array(list(PAPER_T2_BASE))
+    std = np.array([v[1] for v in PAPER_T2_BASE.values()])
+    w = 2 * np.pi * f
+    target = std * 1e-3 * math.sqrt(2) / 10.0          # |E/R| from a sine's STD = A |E/R| / sqrt(2)
+
+    def model(c, k):
+        return w * np.sqrt(c * c + w * w) / k
+    fit = least_squares(lambda p: np.log(model(p[0], math.exp(p[1])) / target), [10.0, math.log(1e4)])
+    c2, k2 = fit.x[0], math.exp(fit.x[1])
+    print(f"Table 2 (STD rows) asks of a linear loop: c = a1 - Kf*b0 = {c2:.2f} 1/s, k = b0*Kp = {k2:,.0f} 1/s^2 "
+          f"(fit ratios {', '.join(f'{x:.3f}' for x in np.exp(fit.fun))})")
+    # the loop Table 2 asks for, simulated on both tables (b0 from k with the paper's Kp, Kf from c)
+    from markcal.stages.servo_control import PIDGains
+    from markcal.stages.servo_plant import PlantParams
+    b0 = k2 / PIDGains().kp
+    kf = (PlantParams().a1 - c2) / b0
+    steady = replace(DEFAULT_READING, sine_window="last")
+    rows = baseline_rows_many(steady, [steady], gains=PIDGains(kf=kf),
+                              plant=PlantParams(b0=b0 / DEFAULT_READING.b0_scale))[0]
+    t1, t2 = fmt_rows(rows)
+    sc = score_rows(rows)
+    print(f"that loop (b0 = {b0:.1f}, Kf = {kf:.4f} V s/mm, the rest as the default reading, sine MAE/STD over the last of 3 periods) simulated: "
+          f"T1 {t1} | T2 {t2} (T1 {sc['t1_within']}/6, T2 {sc['t2_within']}/10)")
+    for name, rd in NAMED_READINGS.items():
+        p, g = reading_params(rd)
+        k, c = p.b0 * g.kp, p.a1 - g.kf * p.b0
+        ratio = model(c, k) / target
+        note = "" if p.a0 == 0 else "  (plant with a0: this model does not apply)"
+        print(f"  {name:14s} k = {k:12,.0f}  c = {c:8.2f}  steady |E/R| / Table 2: "
+              f"{', '.join(f'{x:.2f}' for x in ratio)}{note}")
 
 
 def fmt_rows(rows):
@@ -67,9 +152,16 @@ def main():
     ap.add_argument("--markdown", action="store_true", help="print the top rows as a README table")
     ap.add_argument("--b0-scale", type=float, default=None, help="only readings with this numerator scale")
     ap.add_argument("--plant", default=None, help="only readings with this plant form (a0, no_a0)")
+    ap.add_argument("--stage2", action="store_true", help="cross the best bases with the second-pass choices")
+    ap.add_argument("--bases", type=int, default=6, help="bases of the first search taken into --stage2")
+    ap.add_argument("--diagnose", action="store_true", help="what Table 2 asks of a linear loop, and exit")
     a = ap.parse_args()
+    if a.diagnose:
+        diagnose()
+        return
     t0 = time.perf_counter()
-    res = sorted((x for x in search() if (a.b0_scale is None or x[0].b0_scale == a.b0_scale)
+    gen = search2(_stage1_bases(a.bases)) if a.stage2 else search()
+    res = sorted((x for x in gen if (a.b0_scale is None or x[0].b0_scale == a.b0_scale)
                   and (a.plant is None or x[0].plant == a.plant)), key=lambda x: x[2]["score"])
     print(f"{len(res):,} readings scored in {time.perf_counter() - t0:.1f} s")
     print("paper T1 (overshoot µm / settling ms, 10/20/30 mm):",

@@ -25,6 +25,8 @@ def cmd_servo(args) -> int:
         raise MarkcalError("give either CONFIG.toml (simulation) or --trace LOG (a drive log), not both")
     given = {k: getattr(args, k) for k in LOG_FLAGS if getattr(args, k) is not None}
     if args.trace:
+        if args.reading is not None:
+            raise MarkcalError("--reading: only for the simulation (a drive log is measured, not simulated)")
         if args.settle_band_um is not None and args.settle_band_pct is not None:
             raise MarkcalError("give --settle-band-um or --settle-band-pct, not both")
         opts = {**TRACE_OPTIONS, **given, "no_report": args.no_report}
@@ -44,6 +46,11 @@ def cmd_servo(args) -> int:
         cfg = read_servo_config(args.config) if args.config else ServoConfig()
         if args.settle_band_um is not None:
             cfg = replace(cfg, settle_band_um=args.settle_band_um)
+        if args.reading is not None:
+            from markcal.stages.servo_reading import NAMED_READINGS
+            if args.reading not in NAMED_READINGS:
+                raise MarkcalError(f"--reading {args.reading!r} unknown (one of {', '.join(NAMED_READINGS)})")
+            cfg = replace(cfg, reading=NAMED_READINGS[args.reading])
         res = run_servo(cfg, source=os.path.abspath(args.config) if args.config else "paper defaults (no config)",
                         progress=say)
         from markcal.pipeline.cli_common import context_of
@@ -125,6 +132,9 @@ def register(sub, render_sub) -> None:
                     help="settling band half width, µm (default: 1 for logs, the reading's band for the simulation)")
     sv.add_argument("--settle-band-pct", type=float, default=None,
                     help="settling band half width in %% of each move's stroke (logs; instead of --settle-band-um)")
+    sv.add_argument("--reading", metavar="NAME", default=None,
+                    help="how the paper's garbled plant and unit-less gains are read, a named reading "
+                         "(simulation; default: the config's [model] reading, else 'best'; names in docs/servo.md)")
     sv.add_argument("--no-report", action="store_true", help="skip report.html")
     sv.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
     add_run_options(sv)

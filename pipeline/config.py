@@ -241,6 +241,7 @@ def _servo_schema() -> dict:
     from markcal.stages.servo_control import PIDGains
     from markcal.stages.servo_cases import ServoConfig
     from markcal.stages.servo_plant import PlantParams
+    from markcal.stages.servo_reading import NAMED_READINGS
     c, g, p = ServoConfig(), PIDGains(), PlantParams()
 
     def num(default, unit="", **limits):
@@ -260,6 +261,7 @@ def _servo_schema() -> dict:
                  "frequencies_hz": Key("floats", c.frequencies_hz, unit="Hz", min=1e-3, max=1e4),
                  "periods": num(c.periods, positive=True, max=1000.0)},
         "metrics": {"settle_band_um": num(c.settle_band_um, "µm", positive=True)},
+        "model": {"reading": Key("str", "best", choices=tuple(NAMED_READINGS))},
     }
 
 
@@ -268,7 +270,7 @@ MAX_SERVO_SAMPLES = 20_000_000
 
 
 def read_servo_config(path):
-    """Read a servo CONFIG.toml: ``[plant] [controller] [repetitive] [step] [sine] [metrics]``.
+    """Read a servo CONFIG.toml: ``[plant] [controller] [repetitive] [step] [sine] [metrics] [model]``.
 
     Missing keys take the paper's values; ``[repetitive] m`` is a whole number of
     samples or ``"auto"``. The result is validated (physical, stable).
@@ -276,6 +278,7 @@ def read_servo_config(path):
     from markcal.stages.servo_control import PIDGains
     from markcal.stages.servo_plant import PlantParams
     from markcal.stages.servo_cases import ServoConfig, validate_config
+    from markcal.stages.servo_reading import NAMED_READINGS
 
     path = os.fspath(path)
     c = read_config(path, _servo_schema(), "config file")
@@ -285,6 +288,7 @@ def read_servo_config(path):
                       gains=replace(PIDGains(), **{k: v for k, v in ctrl.items() if k in gain_names}),
                       rc_tau=rep["tau"], rc_kr=rep["kr"], rc_m=None if rep["m"] == "auto" else rep["m"],
                       u_max_v=ctrl["u_max_v"], friction_v=ctrl["friction_v"],
+                      reading=NAMED_READINGS[c["model"]["reading"]],
                       **c["step"], **c["sine"], **c["metrics"])
     try:
         validate_config(cfg)

@@ -53,6 +53,52 @@ class DriveLog:
     first_data_line: int
 
 
+#: header names (lower case, units stripped) that say a column's role when the defaults are absent
+ROLE_NAMES = {
+    "time": ("t", "time", "timestamp", "t_s", "time_s", "zeit", "sample_time"),
+    # in order of preference: the demand (profiled) position is what the loop follows; a target is its end point
+    "reference": ("ref", "reference", "demand", "demand_pos", "pos_demand", "ref_pos", "x_ref", "xd", "desired",
+                  "setpoint", "set_point", "command", "cmd", "pos_cmd", "position_cmd", "target", "target_pos"),
+    "position": ("pos", "position", "actual", "act", "feedback", "fbk", "measured", "encoder", "enc",
+                 "actual_pos", "pos_act", "position_actual", "x", "x_act", "pos_mm", "act_pos"),
+}
+_UNIT_SUFFIX = {"ms": "ms", "us": "us", "µs": "us", "s": "s", "mm": "mm", "um": "um", "µm": "um",
+                "counts": "counts", "cnt": "counts", "inc": "counts"}
+
+
+def _name_and_unit(header_field: str) -> tuple:
+    """``"Time [ms]"`` / ``"time_ms"`` / ``"pos(um)"`` -> (``"time"``, ``"ms"``); unit None when absent."""
+    h = header_field.strip().lower().replace(" ", "_")
+    for open_, close in (("[", "]"), ("(", ")")):
+        if h.endswith(close) and open_ in h:
+            base, unit = h[:-1].rsplit(open_, 1)
+            return base.strip("_"), _UNIT_SUFFIX.get(unit.strip("_"))
+    if "_" in h:
+        base, unit = h.rsplit("_", 1)
+        if unit in _UNIT_SUFFIX:
+            return base, _UNIT_SUFFIX[unit]
+    return h, None
+
+
+def guess_columns(header) -> dict:
+    """The time, reference and position columns of a header by their names, with the units the names carry.
+
+    Returns ``{role: (column name, unit or None)}``. Names are tried in the order
+    of :data:`ROLE_NAMES` (a "demand" column wins over a "target" one); a name
+    that two columns carry (two "actual" columns) is ambiguous and skipped. Used
+    when a log lacks the default ``t_s``/``ref_mm``/``pos_mm`` columns.
+    """
+    parsed = [(h, *_name_and_unit(h)) for h in header]
+    found = {}
+    for role, names in ROLE_NAMES.items():
+        for name in names:
+            hits = [(h, unit) for h, base, unit in parsed if base == name or h.strip().lower() == name]
+            if len(hits) == 1 and all(hits[0][0] != f[0] for f in found.values()):
+                found[role] = hits[0]
+                break
+    return found
+
+
 def _is_number(tok: str) -> bool:
     try:
         float(tok)

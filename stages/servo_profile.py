@@ -82,8 +82,13 @@ def s_curve(stroke_mm: float, v_mm_s: float = 100.0, a_mm_s2: float = 10_000.0,
     return Profile(t_s=t, x_mm=sgn * x, v_mm_s=sgn * v, t_end_s=float(t_end))
 
 
-def sinusoid(amplitude_mm: float, frequency_hz: float, periods: float = 3.0, ts_s: float = 1e-4) -> Profile:
-    """``x = A sin(2 pi f t)`` over ``periods`` periods (mm, mm/s)."""
+def sinusoid(amplitude_mm: float, frequency_hz: float, periods: float = 3.0, ts_s: float = 1e-4,
+             phase_deg: float = 0.0) -> Profile:
+    """``x = A sin(2 pi f t + phase)`` over ``periods`` periods (mm, mm/s).
+
+    ``phase_deg = 0`` starts at 0 at full speed (a velocity step for a stage at
+    rest); 90 starts at ``A`` with zero velocity.
+    """
     if not (np.isfinite(amplitude_mm) and amplitude_mm > 0):
         raise MarkcalError(f"sine amplitude must be positive (got {amplitude_mm})")
     if not (np.isfinite(frequency_hz) and frequency_hz > 0):
@@ -93,5 +98,6 @@ def sinusoid(amplitude_mm: float, frequency_hz: float, periods: float = 3.0, ts_
     n = int(round(periods / frequency_hz / ts_s)) + 1
     t = np.arange(n) * ts_s
     w = 2 * np.pi * frequency_hz
-    return Profile(t_s=t, x_mm=amplitude_mm * np.sin(w * t), v_mm_s=amplitude_mm * w * np.cos(w * t),
+    ph = np.radians(phase_deg)
+    return Profile(t_s=t, x_mm=amplitude_mm * np.sin(w * t + ph), v_mm_s=amplitude_mm * w * np.cos(w * t + ph),
                    t_end_s=float(t[-1]))

@@ -63,7 +63,7 @@ class SimResult:
 
 
 @njit(cache=True)
-def _loop(A, B, r, vff, kf, kp, ki_inv, kd, phi, delta, ts, rc_D, rc_m, tau, kr, u_max, friction_v):
+def _loop(A, B, r, vff, kf, kp, ki_inv, kd, phi, delta, ts, rc_D, rc_m, tau, kr, u_max, friction_v, d_alpha):
     n = r.shape[0]
     y = np.empty(n)
     u_out = np.empty(n)
@@ -72,6 +72,7 @@ def _loop(A, B, r, vff, kf, kp, ki_inv, kd, phi, delta, ts, rc_D, rc_m, tau, kr,
     x1 = 0.0
     e_prev = r[0] - x0
     integ = 0.0
+    de_f = 0.0
     for k in range(n):
         y[k] = x0
         e = r[k] - x0
@@ -87,8 +88,9 @@ def _loop(A, B, r, vff, kf, kp, ki_inv, kd, phi, delta, ts, rc_D, rc_m, tau, kr,
                 e += kr * f[j]
         de = (e - e_prev) / ts
         e_prev = e
+        de_f = d_alpha * de_f + (1.0 - d_alpha) * de      # first-order derivative filter (d_alpha 0: none)
         integ += e * ts
-        u = kf * vff[k] + s * (kp * e + kd * de) + ki_inv * integ
+        u = kf * vff[k] + s * (kp * e + kd * de_f) + ki_inv * integ
         if u > u_max:
             u = u_max
         elif u < -u_max:
@@ -106,7 +108,8 @@ def _loop(A, B, r, vff, kf, kp, ki_inv, kd, phi, delta, ts, rc_D, rc_m, tau, kr,
 
 def simulate(dp: DiscretePlant, gains: PIDGains, profile: Profile, controller: Controller,
              rc: RepetitiveParams | None = None, period_s: float | None = None,
-             u_max_v: float = np.inf, friction_v: float = 0.0) -> SimResult:
+             u_max_v: float = np.inf, friction_v: float = 0.0, d_filter_hz: float = np.inf,
+             ff_order: int = 1) -> SimResult:
     """Simulate the closed loop on ``profile``.
 
     Parameters
@@ -125,6 +128,11 @@ def simulate(dp: DiscretePlant, gains: PIDGains, profile: Profile, controller: C
         Symmetric output saturation, V (default none).
     friction_v : float
         Coulomb friction expressed as an equivalent input voltage, V (default 0).
+    d_filter_hz : float
+        Corner of a first-order low-pass on the derivative term, Hz (default none).
+    ff_order : int
+        What ``Kf`` multiplies: 1 the reference velocity (paper), 2 its acceleration
+        (a reading of the feed-forward), 0 nothing (no feed-forward).
 
     Returns
     -------
@@ -141,6 +149,10 @@ def simulate(dp: DiscretePlant, gains: PIDGains, profile: Profile, controller: C
         vff = np.empty_like(xd)
         vff[1:] = np.diff(xd) / ts
         vff[0] = 0.0
+    for _ in range(int(ff_order) - 1):             # higher derivatives of the reference: backward differences
+        vff = np.concatenate(([0.0], np.diff(vff) / ts))
+    if ff_order == 0:
+        vff = np.zeros_like(xd)
     rc_D = rc_m = 0
     tau = kr = 0.0
     if controller.repetitive:
@@ -153,8 +165,9 @@ def simulate(dp: DiscretePlant, gains: PIDGains, profile: Profile, controller: C
         tau, kr = float(rc.tau), float(rc.kr)
     ki_inv = gains.ki_inv
     phi = gains.phi_mm if controller.gain_schedule else -1.0
+    d_alpha = 0.0 if np.isinf(d_filter_hz) else float(np.exp(-2 * np.pi * d_filter_hz * ts))
     y, u = _loop(dp.A, dp.B, r, vff, gains.kf, gains.kp, ki_inv, gains.kd, phi, gains.delta, ts,
-                 rc_D, rc_m, tau, kr, float(u_max_v), float(friction_v))
+                 rc_D, rc_m, tau, kr, float(u_max_v), float(friction_v), d_alpha)
     return SimResult(t_s=profile.t_s, ref_mm=xd, pos_mm=y, u_v=u, err_mm=xd - y)
 
 

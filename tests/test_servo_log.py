@@ -130,7 +130,7 @@ def test_default_csv_claimed_and_batch_options(tmp_path):
     rt = render_servo_log(2, o)
     tsv = tmp_path / "drive.tsv"
     read = save_servo_log(tsv, rt)
-    assert not flow.descriptor.claims(tsv)
+    assert flow.descriptor.claims(tsv)            # time / target / demand / actual: found by name
     # the options batch.toml can set are the descriptor's (typed like its defaults)
     d = flow.descriptor.options
     assert {k: type(v) for k, v in read.items()} == {k: type(d[k]) for k in read}
@@ -139,6 +139,50 @@ def test_default_csv_claimed_and_batch_options(tmp_path):
     assert res.summary["n_moves"] == 2
     assert abs(res.summary["settling_time_s"] - max(m["settling_time_s"] for m in rt.truth["moves"])) \
         <= rt.truth["max_step_s"]
+
+
+def test_batch_claims_logs_with_their_own_headers(tmp_path):
+    """A drive log named otherwise (time_ms, demand, actual; a "Time [ms]" header) is claimed by the
+    batch and measured right with no options; batch.toml's [servo] options read the rest."""
+    from markcal.pipeline.cli import main as cli
+    import csv as _csv
+    inp = tmp_path / "in"
+    inp.mkdir()
+    r = render_servo_log(3, LogOptions(n_moves=3, time_unit="ms", jitter=0.0))
+    t_ms, ref, pos = r.t_s * 1e3, r.ref_mm, r.pos_mm
+    with open(inp / "axis_x.csv", "w", newline="") as fh:          # unit in the name: no option needed
+        w = _csv.writer(fh)
+        w.writerow(["sample", "time_ms", "target", "demand", "actual"])
+        w.writerows([i, f"{a:.4f}", f"{b:.6f}", f"{b:.6f}", f"{c:.6f}"] for i, (a, b, c) in enumerate(zip(t_ms, ref, pos)))
+    with open(inp / "axis_y.tsv", "w", newline="") as fh:          # units in brackets, positions in µm
+        fh.write("Time [ms]\tSetpoint [um]\tPosition [um]\n")
+        fh.writelines(f"{a:.4f}\t{b * 1e3:.3f}\t{c * 1e3:.3f}\n" for a, b, c in zip(t_ms, ref, pos))
+    with open(inp / "notes.csv", "w") as fh:                       # a table that is not a drive log
+        fh.write("name,value,comment\na,1,x\n")
+    (tmp_path / "batch.toml").write_text('[servo]\nsettle_band_um = 5.0\n')
+    out = tmp_path / "out"
+    assert cli(["batch", str(inp), "--out", str(out), "--config", str(tmp_path / "batch.toml"), "--workers", "1",
+                "--quiet"]) in (0, 3)
+    rows = {row["name"]: row for row in _csv.DictReader(open(out / "summary.csv")) if row["flow"] == "servo"}
+    assert set(rows) == {"axis_x", "axis_y"}                       # notes.csv is not taken for a drive log
+    truth = max(m["settling_time_s"] for m in r.truth["moves"])
+    for name in rows:
+        s = json.load(open(out / name / "summary.json"))
+        assert s["n_moves"] == 3 and s["time_unit"] == "ms"
+        assert abs(s["settling_time_s"] - truth) <= r.truth["max_step_s"], (name, s["settling_time_s"], truth)
+    assert json.load(open(out / "axis_x" / "summary.json"))["ref_col"] == "demand"
+    assert json.load(open(out / "axis_y" / "summary.json"))["pos_unit"] == "um"
+
+
+def test_guess_columns_by_name():
+    from markcal.stages.servo_log import guess_columns
+    g = guess_columns(("sample", "Time [ms]", "target", "demand", "actual", "current_A"))
+    assert g == {"time": ("Time [ms]", "ms"), "reference": ("demand", None), "position": ("actual", None)}
+    assert guess_columns(("t_us", "setpoint", "pos(um)")) == {"time": ("t_us", "us"), "reference": ("setpoint", None),
+                                                             "position": ("pos(um)", "um")}
+    # two position columns of the same name: ambiguous, not guessed
+    assert "position" not in guess_columns(("time", "target", "actual", "Actual"))
+    assert guess_columns(("name", "value", "comment")) == {}
 
 
 def test_columns_by_index_and_case(tmp_path, capsys):

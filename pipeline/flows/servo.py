@@ -21,12 +21,13 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.servo_cases import (PAPER_RC_M, Run, ServoConfig, band_um, choose_rc, find_run, sim_model,
                                         validate_config)
 from markcal.stages.servo_control import tracking_differentiator
-from markcal.stages.servo_reading import NAMED_READINGS, baseline_rows, reference_end_s, score_rows
+from markcal.stages.servo_reading import (NAMED_READINGS, baseline_rows, reference_end_s, score_rows,
+                                          sim_options, sine_phase_deg)
 from markcal.stages.servo_control import RepetitiveParams, StabilityCheck
 from markcal.stages.servo_plant import discretise
 from markcal.stages.servo_profile import s_curve, sinusoid
 from markcal.stages.servo_log import (DriveLog, Moves, SineMetrics, check_log, find_moves, move_metrics,
-                                     move_statistics, read_log, sine_metrics, sniff_layout)
+                                     guess_columns, move_statistics, read_log, sine_metrics, sniff_layout)
 from markcal.stages.servo_sim import (BASELINE, CCA_STEP, CCA_TRACK, SimResult, simulate, step_metrics,
                                       tracking_metrics)
 from markcal.stages.stats import reduction_pct
@@ -54,7 +55,7 @@ class ServoResult:
 def _step_run(cfg, dp, gains, stroke, ctrl):
     ts = dp.params.ts_s
     p = s_curve(stroke, cfg.velocity_mm_s, cfg.acceleration_mm_s2, cfg.jerk_mm_s3, ts, cfg.dwell_s)
-    r = simulate(dp, gains, p, ctrl, u_max_v=cfg.u_max_v, friction_v=cfg.friction_v)
+    r = simulate(dp, gains, p, ctrl, friction_v=cfg.friction_v, **sim_options(cfg.reading, cfg.u_max_v))
     t_end = p.t_end_s
     if ctrl.tracking_differentiator and cfg.reading.cca_origin == "own":
         # settling counted from the end of the reference the loop follows: the TD's output
@@ -66,9 +67,9 @@ def _step_run(cfg, dp, gains, stroke, ctrl):
 
 def _sine_run(cfg, dp, gains, amp, freq, ctrl, rc):
     ts = dp.params.ts_s
-    p = sinusoid(amp, freq, cfg.periods, ts)
-    r = simulate(dp, gains, p, ctrl, rc=rc, period_s=1.0 / freq, u_max_v=cfg.u_max_v,
-                 friction_v=cfg.friction_v)
+    p = sinusoid(amp, freq, cfg.periods, ts, sine_phase_deg(cfg.reading))
+    r = simulate(dp, gains, p, ctrl, rc=rc, period_s=1.0 / freq, friction_v=cfg.friction_v,
+                 **sim_options(cfg.reading, cfg.u_max_v))
     n1 = int(round(1.0 / freq / ts))
     # the reading's window: the whole record from rest, or the last whole period
     win = slice(None) if cfg.reading.sine_window == "whole" else slice(len(p.t_s) - n1, len(p.t_s))
@@ -102,6 +103,7 @@ def run_servo(cfg: ServoConfig | None = None, source: str = "paper defaults", pr
                 runs.append(_sine_run(cfg, dp, gains, amp, freq, ctrl, rc))
     say(f"{len(cfg.amplitudes_mm) * len(cfg.frequencies_hz)} sinusoids simulated")
     summary = _sim_summary(cfg, runs, rc, check, paper)
+    summary["reading"] = next((n for n, rd in NAMED_READINGS.items() if rd == cfg.reading), "custom")
     readings = []
     if compare_readings:
         for name, rd in NAMED_READINGS.items():
@@ -166,13 +168,45 @@ class TraceAnalysis:
     sine: SineMetrics | None
 
 
+_ROLE_OPTION = {"time": "time_col", "reference": "ref_col", "position": "pos_col"}
+
+
+def resolve_columns(path, options: dict) -> dict:
+    """Fill in columns (and the units their names carry) a log names differently from the defaults.
+
+    A column option left at its default (``t_s``, ``ref_mm``, ``pos_mm``) that
+    the log's header lacks is replaced by the column :func:`guess_columns` finds
+    for that role ("time_ms", "demand", "actual", ...); the time unit (and a
+    position unit of µm) follows the guessed column's name when its option is
+    at its default. Anything given explicitly is kept.
+    """
+    o = dict(options)
+    try:
+        header = sniff_layout(path).header
+    except MarkcalError:
+        return o                                   # read_log reports the problem
+    low = {h.lower() for h in header}
+    guess = guess_columns(header) if header else {}
+    for role, key in _ROLE_OPTION.items():
+        if o[key] != TRACE_OPTIONS[key] or str(o[key]).lower() in low or role not in guess:
+            continue
+        name, unit = guess[role]
+        o[key] = name
+        if role == "time" and unit in ("ms", "us") and o["time_unit"] == TRACE_OPTIONS["time_unit"]:
+            o["time_unit"] = unit
+        if role == "position" and unit == "um" and o["pos_unit"] == TRACE_OPTIONS["pos_unit"]:
+            o["pos_unit"] = unit
+    return o
+
+
 def read_trace(path, options: dict | None = None) -> DriveLog:
     """Read and check a drive log with the trace options (columns, units); see :func:`read_log`.
 
+    Columns named otherwise than the defaults are found by :func:`resolve_columns`.
     Refused: a missing or non-numeric column, fewer than 20 rows, time out of
     order or repeated, gaps over 10 samples, a reference that never moves.
     """
-    o = {**TRACE_OPTIONS, **(options or {})}
+    o = resolve_columns(path, {**TRACE_OPTIONS, **(options or {})})
     log = read_log(path, o["time_col"], o["ref_col"], o["pos_col"], o["time_unit"], o["pos_unit"],
                    float(o["counts_per_mm"]))
     check_log(log, os.fspath(path))
@@ -197,6 +231,7 @@ def run_servo_trace(path, options: dict | None = None, progress=None) -> ServoRe
     abs_um, band_pct = _band(o)
     t0 = time.perf_counter()
     path = os.fspath(path)
+    o = resolve_columns(path, o)
     log = read_trace(path, o)
     t, ref, pos = log.t_s, log.ref_mm, log.pos_mm
     say(f"read {len(t):,} samples ({', '.join(log.columns)})")
@@ -256,7 +291,9 @@ def _claims(path) -> bool:
         lay = sniff_layout(path)
     except MarkcalError:
         return False
-    return {"t_s", "ref_mm", "pos_mm"} <= {h.lower() for h in lay.header}
+    if {"t_s", "ref_mm", "pos_mm"} <= {h.lower() for h in lay.header}:
+        return True
+    return len(guess_columns(lay.header)) == 3        # e.g. time_ms, demand, actual
 
 
 def _run_trace(path, spec, options, progress=None) -> ServoResult:
