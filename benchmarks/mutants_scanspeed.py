@@ -21,7 +21,7 @@ import mutants  # noqa: E402  (the harness: mutated_source, run_mutant)
 
 RBF_TESTS = ["tests/test_rbf_select.py", "tests/test_detect_rbf.py", "-k", "ols or rbf or select or chosen or batched"]
 PLANE_TESTS = ["tests/test_plane.py", "tests/test_geometry.py", "-k", "plane or projection"]
-DETECT_TESTS = ["tests/test_ring_refinement.py"]
+DETECT_TESTS = ["tests/test_scan_image_refine.py", "tests/test_ring_refinement.py"]
 IMAGE_TESTS = ["tests/test_plate_image.py", "-k", "1200_dpi or pixel_size_option"]
 
 #: name, file, old text (exactly once), new text, the tests that must kill it
@@ -43,9 +43,9 @@ MUTANTS_SCANSPEED = [
     {"name": "detect-no-huber", "file": "stages/detect.py",
      "old": "radii, n_iter, free, huber_k=2.0):", "new": "radii, n_iter, free, huber_k=1e9):",
      "tests": DETECT_TESTS},
-    {"name": "detect-fine-fit-not-recentred", "file": "stages/detect.py",
-     "old": "u, v, y, valid = _gather(raster, p[:, :2], reach_b, stride)",
-     "new": "u, v, y, valid = _gather(raster, uv0, reach_b, stride)", "tests": DETECT_TESTS},
+    {"name": "detect-capture-pass-one-iteration", "file": "stages/detect.py",
+     "old": "p, _ = _gauss_newton(p, u, v, y, mask, radii, 6, free_a)",
+     "new": "p, _ = _gauss_newton(p, u, v, y, mask, radii, 1, free_a)", "tests": DETECT_TESTS},
     {"name": "image-coarse-pixel-size", "file": "stages/plate_image.py",
      "old": "pixel_mm=raster.pixel_mm * f)", "new": "pixel_mm=raster.pixel_mm * (f + 1))", "tests": IMAGE_TESTS},
 ]
