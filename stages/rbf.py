@@ -134,18 +134,18 @@ def _ols_batch(xs, ys, spread_mm, max_neurons, mse_goal=0.0, xvs=None):
     W = np.zeros((nb, steps, n))                          # selected orthogonal columns, as rows
     C = np.zeros((nb, steps, n))                          # their coefficients on every candidate
     num = E @ P                                           # (nb, k, n): candidates' correlation with E
-    mse = np.array([(E[b] ** 2).sum() / (ns[b] * k) for b in range(nb)])
-    mses = [[v] for v in mse]
-    orders = [[] for _ in range(nb)]
-    pred = Pv = Wv = None
+    mse = (E * E).sum(axis=(1, 2)) / (ns * k)
+    mse0 = mse.copy()
+    chosen = np.full((steps, nb), -1)                      # centre chosen at each step (-1: stopped)
+    mse_after = np.zeros((steps, nb))
+    gains = np.zeros((nb, steps, k))                      # output weights of each orthogonal column
+    Pv = Wv = None
     if xvs is not None:
         nv = max(len(v) for v in xvs)
         Pv = np.zeros((nb, nv, n))
-        pred = []
-        for b, (xv, y) in enumerate(zip(xvs, ys)):
+        for b, xv in enumerate(xvs):
             Pv[b, :len(xv), :ns[b]] = _design(xv, xs[b], spread_mm) - col_means[b]
-            pred.append([np.broadcast_to(y.mean(axis=0), (len(xv), k)).copy()])
-        Wv = np.zeros((nb, steps, nv))
+        Wv = np.zeros((nb, steps, nv))                    # the orthogonal columns at the validation points
     rows = np.arange(nb)
     active = np.ones(nb, bool)
     for m in range(steps):
@@ -172,16 +172,22 @@ def _ols_batch(xs, ys, spread_mm, max_neurons, mse_goal=0.0, xvs=None):
         norms = np.maximum(norms - coef * coef * nj[:, None], 0.0)
         mse = np.where(active, (E * E).sum(axis=(1, 2)) / (ns * k), mse)
         if Pv is not None:
-            wv = Pv[rows, :, j] - (cj @ Wv[:, :m])[:, 0]
-            Wv[:, m] = wv
-        for b in np.flatnonzero(active):
-            avail[b, j[b]] = False
-            orders[b].append(int(j[b]))
-            mses[b].append(float(mse[b]))
-            if Pv is not None:
-                pred[b].append(pred[b][-1] + np.outer(wv[b, :len(xvs[b])], g[b]))
-    return (orders, [np.array(e) for e in mses],
-            None if pred is None else [np.array(p) for p in pred])
+            Wv[:, m] = Pv[rows, :, j] - (cj @ Wv[:, :m])[:, 0]
+        avail[rows[active], j[active]] = False
+        chosen[m, active] = j[active]
+        mse_after[m] = mse
+        gains[:, m] = g
+    orders, mses, preds = [], [], []
+    for b in range(nb):
+        last = int((chosen[:, b] >= 0).sum())             # the steps taken form a prefix
+        orders.append(chosen[:last, b].tolist())
+        mses.append(np.r_[mse0[b], mse_after[:last, b]])
+        if Pv is not None:
+            nvb = len(xvs[b])
+            steps_b = Wv[b, :last, :nvb, None] * gains[b, :last, None, :]          # (last, nv, k)
+            start = np.broadcast_to(ys[b].mean(axis=0), (1, nvb, k))
+            preds.append(np.concatenate([start, start + np.cumsum(steps_b, axis=0)]))
+    return orders, mses, (preds if Pv is not None else None)
 
 
 def train(x_mm, y_mm, spread_mm: float, mse_goal: float, max_neurons: int | None = None) -> RBFModel:
