@@ -10,8 +10,8 @@ killed when they fail.
 Measured (2 cores, load 13-19): 9 of 9 killed, 5-25 s each. Written and dropped: the fine ring fit's
 window left on the starting centre instead of the capture pass's (``_gather(raster, uv0, ...)``)
 survived every test, because with starts 0.2-0.3 mm off the fine window still holds both rings; it
-was replaced by the capture pass cut to one iteration. Huber off and that cut are killed only by
-tests/test_scan_image_refine.py (tests/test_ring_refinement.py passes both).
+was replaced by the capture pass cut to one iteration. Huber off survived tests/test_ring_refinement.py
+alone; it and the one-iteration capture pass are killed by tests/test_scan_image_refine.py.
 """
 from __future__ import annotations
 
