@@ -1,59 +1,135 @@
-"""Benchmark: the scan flow on a full-size (~5 M point) plate, and RBF training + selection.
+"""Benchmark: the whole ``markcal scan`` command on a full-size (~5.4 M point) PLY, this code beside an older commit.
 
-Prints medians over several runs. Usage: python benchmarks/bench_scan.py [--runs N] [--seed S]
+Renders one plate (seed 7, one contaminated mark), then runs ``python -m markcal.pipeline.cli scan
+cloud.ply --plate plate.toml --out DIR --quiet`` (report included) in child processes, alternating
+the reference commit (``git archive`` into a temporary folder, imported through PYTHONPATH) and this
+working tree, and prints medians of wall and CPU time (user + system of the child) side by side,
+with the load average. The RBF selection (5-fold CV over the scan flow's spreads and goals) is
+timed the same way, in children, on the fiducials of the first run. The output trees of both
+codes are compared with benchmarks/compare_outputs.py.
+
+    python benchmarks/bench_scan.py [--runs 3] [--ref 5f2c370] [--cloud PLY --plate TOML]
 """
+from __future__ import annotations
+
 import argparse
 import os
 import platform
+import shutil
 import statistics
+import subprocess
+import sys
 import tempfile
 import time
 
-import numpy as np
+HERE = os.path.dirname(os.path.abspath(__file__))
+REPO = os.path.dirname(HERE)
 
-from markcal.fixtures.scan_plate import ScanOptions as RenderOptions, render_scan
-from markcal.pipeline.flows.scan import MSE_GOALS_MM2, SPREADS_PER_PITCH, run_scan
-from markcal.reports.files import write_ply
-from markcal.reports.scan_outputs import write_scan_outputs
+RBF_SNIPPET = r"""
+import sys, time, numpy as np
+from markcal.pipeline.flows.scan import MSE_GOALS_MM2, SPREADS_PER_PITCH
+from markcal.reports.files import read_csv
 from markcal.stages import rbf
 from markcal.stages.plate import PlateSpec
+f = read_csv(sys.argv[1])
+p = np.column_stack([f["x_meas_mm"], f["y_meas_mm"]]); d = np.column_stack([f["dx_mm"], f["dy_mm"]])
+spreads = np.array(SPREADS_PER_PITCH) * PlateSpec().pitch_mm
+c, w = time.process_time(), time.perf_counter()
+sel = rbf.select(p, d, spreads, MSE_GOALS_MM2, 5, 0, 200)
+m = rbf.train(p, d, sel.spread_mm, sel.mse_goal_mm2, 200)
+print(time.perf_counter() - w, time.process_time() - c, sel.spread_mm, sel.mse_goal_mm2, m.n_neurons)
+"""
+
+
+def _reference_tree(ref: str, tmp: str) -> str:
+    """``git archive`` of ``ref`` laid out as an importable ``markcal`` namespace; returns its PYTHONPATH."""
+    src = os.path.join(tmp, "ref_src")
+    os.makedirs(src)
+    archive = subprocess.run(["git", "-C", REPO, "archive", ref], capture_output=True, check=True).stdout
+    subprocess.run(["tar", "-x", "-C", src], input=archive, check=True)
+    pkg = os.path.join(tmp, "ref", "markcal")
+    os.makedirs(pkg)
+    for d in ("pipeline", "stages", "fixtures", "reports"):
+        os.symlink(os.path.join(src, d), os.path.join(pkg, d))
+    return os.path.join(tmp, "ref")
+
+
+def _run(args, pythonpath, ok=(0,)):
+    """Run a child Python; returns (wall s, cpu s, stdout). Exit codes in ``ok`` are success."""
+    env = dict(os.environ)
+    env.pop("PYTHONPATH", None)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    t = time.perf_counter()
+    p = subprocess.Popen([sys.executable, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env=env, cwd=tempfile.gettempdir())
+    _, status, ru = os.wait4(p.pid, 0)
+    wall = time.perf_counter() - t
+    out, err = p.stdout.read(), p.stderr.read()
+    p.returncode = os.waitstatus_to_exitcode(status)
+    if p.returncode not in ok:
+        raise SystemExit(f"child failed ({pythonpath or 'this tree'}): {err[-2000:]}")
+    return wall, ru.ru_utime + ru.ru_stime, out
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--seed", type=int, default=7)
+    ap.add_argument("--ref", default="5f2c370", help="reference commit (default: the code before issue 22's speed work)")
+    ap.add_argument("--cloud", help="an existing PLY (default: render one)")
+    ap.add_argument("--plate", help="its plate.toml")
     args = ap.parse_args()
-    spec = PlateSpec()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}")
-    r = render_scan(args.seed, spec, RenderOptions(n_contaminated=1))
-    tmp = tempfile.mkdtemp(prefix="markcal-bench-")
-    cloud = os.path.join(tmp, "cloud.ply")
-    write_ply(cloud, r.xyz_mm, r.intensity)
-    print(f"cloud: {len(r.xyz_mm):,} points, {os.path.getsize(cloud) / 1e6:.0f} MB PLY")
-    flow, outputs, rbf_s, res = [], [], [], None
+    tmp = tempfile.mkdtemp(prefix="markcal-bench-scan-")
+    ref_path = _reference_tree(args.ref, tmp)
+    if args.cloud:
+        cloud, plate = args.cloud, args.plate
+    else:
+        from markcal.fixtures.scan_plate import ScanOptions as RenderOptions, render_scan, save_scan
+        from markcal.stages.plate import PlateSpec
+        r = render_scan(args.seed, PlateSpec(), RenderOptions(n_contaminated=1))
+        paths = save_scan(os.path.join(tmp, "plate"), r, formats=("ply",), truth=False)
+        cloud, plate = paths["ply"], paths["plate.toml"]
+    print(f"cloud: {os.path.getsize(cloud) / 1e6:.0f} MB PLY ({cloud})")
+    # this tree is copied too, so edits made while the benchmark runs do not leak into it
+    here = os.path.join(tmp, "here", "markcal")
+    for d in ("pipeline", "stages", "fixtures", "reports"):
+        shutil.copytree(os.path.join(REPO, d), os.path.join(here, d), ignore=shutil.ignore_patterns("__pycache__"))
+    codes = {f"ref {args.ref}": ref_path, "this tree": os.path.dirname(here)}
+    times = {k: [] for k in codes}
+    rbf_times = {k: [] for k in codes}
+    loads = []
     for i in range(args.runs):
-        t = time.perf_counter()
-        res = run_scan(cloud, spec)
-        flow.append(time.perf_counter() - t)
-        t = time.perf_counter()
-        write_scan_outputs(res, os.path.join(tmp, f"out{i}"))
-        outputs.append(time.perf_counter() - t)
-        p = np.column_stack([res.fiducials["x_meas_mm"], res.fiducials["y_meas_mm"]])
-        d = np.column_stack([res.fiducials["dx_mm"], res.fiducials["dy_mm"]])
-        t = time.perf_counter()
-        sel = rbf.select(p, d, np.array(SPREADS_PER_PITCH) * spec.pitch_mm, MSE_GOALS_MM2, 5, 0, 200)
-        rbf.train(p, d, sel.spread_mm, sel.mse_goal_mm2, 200)
-        rbf_s.append(time.perf_counter() - t)
+        for name, path in codes.items():
+            out = os.path.join(tmp, f"out_{name.split()[0]}{i}")
+            loads.append(os.getloadavg()[0])
+            wall, cpu, _ = _run(["-m", "markcal.pipeline.cli", "scan", cloud, "--plate", plate, "--out", out,
+                                 "--quiet"], path, ok=(0, 4))      # 4: out of tolerance, outputs written
+            times[name].append((wall, cpu))
+            fid = os.path.join(tmp, "out_ref0", "fiducials.csv")
+            _, _, line = _run(["-c", RBF_SNIPPET, fid], path)
+            w, c, *sel = line.split()
+            rbf_times[name].append((float(w), float(c), sel))
+            print(f"run {i + 1} {name:>14}: whole command wall {wall:6.1f} s, CPU {cpu:6.1f} s; "
+                  f"RBF selection + training wall {float(w):5.2f} s, CPU {float(c):5.2f} s "
+                  f"(spread {sel[0]} mm, goal {sel[1]} mm2, {sel[2]} neurons); load {loads[-1]:.1f}", flush=True)
     med = statistics.median
-    print(f"scan flow (read PLY -> model, tables in memory): median {med(flow):.2f} s "
-          f"(min {min(flow):.2f}, max {max(flow):.2f}) over {args.runs} runs; goal <= 10 s")
-    print(f"writing outputs incl. report.html: median {med(outputs):.2f} s")
-    print(f"flow + outputs: median {med([a + b for a, b in zip(flow, outputs)]):.2f} s")
-    print(f"RBF selection (5-fold CV, {len(SPREADS_PER_PITCH)} spreads x {len(MSE_GOALS_MM2)} goals) + training: "
-          f"median {med(rbf_s):.2f} s; goal <= 1 s")
-    print(f"detected {res.summary['n_detected']}/{res.summary['n_expected']}, neurons {res.summary['n_neurons']}")
+    ref, new = list(codes)
+    print(f"\nload average 1 min during the runs: {min(loads):.1f}-{max(loads):.1f} ({os.cpu_count()} cores)")
+    for label, t in (("whole command", times), ("RBF selection + training", rbf_times)):
+        for k, name in ((0, "wall"), (1, "CPU")):
+            a, b = med([x[k] for x in t[ref]]), med([x[k] for x in t[new]])
+            print(f"{label:>25} {name:>4}: {ref} median {a:6.2f} s | this tree {b:6.2f} s | ratio {a / b:4.2f}x")
+    print("goals: whole command >= 3x, RBF selection >= 5x (issue 22)")
+    cmp = subprocess.run([sys.executable, os.path.join(HERE, "compare_outputs.py"),
+                          os.path.join(tmp, "out_ref0"), os.path.join(tmp, "out_this0")],
+                         capture_output=True, text=True)
+    print(f"outputs (ref vs this tree, compare_outputs.py): {'same' if cmp.returncode == 0 else 'DIFFER'}")
+    if cmp.returncode:
+        print(cmp.stdout[-3000:])
+    print(f"(outputs kept in {tmp})")
 
 
 if __name__ == "__main__":

@@ -452,7 +452,8 @@ def _fiducial_crops(result) -> str:
         uv = _fiducial_uv(result, i)
         scale = float(f["ring_radius_scale"][i])
         r, c = int(f["row"][i]), int(f["col"][i])
-        inten, ext, (r0, r1, c0, c1) = _crop(np.asarray(raster.intensity, float), raster, uv, half)
+        inten, ext, (r0, r1, c0, c1) = _crop(raster.intensity, raster, uv, half)
+        inten = np.asarray(inten, float)
         valid = (np.ones(inten.shape, bool) if raster.valid is None
                  else np.asarray(raster.valid)[r0:r1, c0:c1])
         panels = [(np.ma.masked_array(inten, ~valid), "intensity (raster)"),

@@ -77,8 +77,8 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     inten = inten[keep]
     if len(uv) < 100:
         raise MarkcalError("fewer than 100 points lie on the plate plane")
-    lo = np.floor(np.percentile(uv, 0.01, axis=0) / pixel_mm) * pixel_mm
-    hi = np.percentile(uv, 99.99, axis=0)
+    lo, hi = np.percentile(uv, [0.01, 99.99], axis=0)
+    lo = np.floor(lo / pixel_mm) * pixel_mm
     ncol, nrow = (np.ceil((hi - lo) / pixel_mm).astype(int) + 1)
     if nrow * ncol > 200_000_000:
         raise MarkcalError(f"plate raster would be {nrow} x {ncol} cells: coordinates are not in mm")

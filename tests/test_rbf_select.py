@@ -1,0 +1,73 @@
+"""OLS forward selection (stages/rbf.py): each chosen centre is the largest error reduction.
+
+The batched selection (classical Gram-Schmidt on the chosen columns, several folds at once)
+must choose what the textbook algorithm chooses; both are checked against brute force.
+"""
+import numpy as np
+import pytest
+
+from markcal.stages import rbf
+
+
+def _data(n, seed):
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-40, 40, (n, 2))
+    y = np.column_stack([0.02 * np.sin(x[:, 0] / 15), 0.01 * np.cos(x[:, 1] / 11) * x[:, 0] / 40])
+    return x, y + rng.normal(0, 0.001, y.shape)
+
+
+def _design(x, c, spread):
+    d2 = ((x[:, None] - c[None]) ** 2).sum(2)
+    return np.column_stack([np.exp(-0.5 * d2 / spread ** 2), np.ones(len(x))])
+
+
+def _brute_force(x, y, spread, steps):
+    """Greedy by refitting every candidate: the centre whose addition lowers the LS error most."""
+    chosen = []
+    for _ in range(steps):
+        best, best_sse = None, np.inf
+        for j in range(len(x)):
+            if j in chosen:
+                continue
+            a = _design(x, x[chosen + [j]], spread)
+            sol, *_ = np.linalg.lstsq(a, y, rcond=None)
+            sse = ((a @ sol - y) ** 2).sum()
+            if sse < best_sse:
+                best, best_sse = j, sse
+        chosen.append(best)
+    return chosen
+
+
+def test_each_chosen_centre_is_the_largest_error_reduction():
+    x, y = _data(40, 3)
+    order, mse, _ = rbf.ols_select(x, y, 12.0, 8)
+    assert order == _brute_force(x, y, 12.0, 8)
+    a = _design(x, x[order], 12.0)
+    sol, *_ = np.linalg.lstsq(a, y, rcond=None)
+    assert mse[-1] == pytest.approx(np.mean((a @ sol - y) ** 2), rel=1e-9)
+
+
+def test_batched_folds_match_one_run_per_fold():
+    """select() runs all folds of a spread at once, zero-padded: each must equal its own run."""
+    x, y = _data(53, 4)
+    fold = np.arange(53) % 4
+    sets = [fold != f for f in range(4)]                       # training sets of 39 and 40 points
+    orders, mses, preds = rbf._ols_batch([x[t] for t in sets], [y[t] for t in sets], 15.0, 25, 0.0,
+                                         [x[~t] for t in sets])
+    for f, t in enumerate(sets):
+        o, m, p = rbf.ols_select(x[t], y[t], 15.0, 25, 0.0, x[~t])
+        assert orders[f] == o
+        np.testing.assert_allclose(mses[f], m, rtol=1e-9, atol=0)
+        np.testing.assert_allclose(preds[f], p, rtol=0, atol=1e-12)
+        # validation predictions are the least-squares fit of each prefix of centres
+        a = _design(x[t], x[t][o[:10]], 15.0)
+        sol, *_ = np.linalg.lstsq(a, y[t], rcond=None)
+        np.testing.assert_allclose(p[10], _design(x[~t], x[t][o[:10]], 15.0) @ sol, rtol=0, atol=1e-9)
+
+
+def test_selection_stops_at_the_goal_and_the_cap():
+    x, y = _data(60, 5)
+    order, mse, _ = rbf.ols_select(x, y, 12.0, 60, mse_goal=2e-5)
+    assert mse[-1] <= 2e-5 < mse[-2]
+    order, mse, _ = rbf.ols_select(x, y, 12.0, 7)
+    assert len(order) == 7 and len(mse) == 8
