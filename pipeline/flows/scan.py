@@ -32,8 +32,9 @@ MSE_GOALS_MM2 = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 5e-4, 1e-3)
 AREAS = {"full": None, "inner_150": 75.0, "inner_50": 25.0}
 #: correction models: the paper's OLS RBF network, or the grid flow's galvo models (stages/galvo_fit)
 MODELS = ("ols-rbf", *KINDS, "auto")
-#: how the orientation is decided without a hint or an orientation mark
-ORIENTATIONS = ("upright", "auto")
+#: without a hint or an orientation mark: "auto" (the galvo model decides, or the flow refuses)
+#: or "upright" (the same as a rotation hint of 0 deg)
+ORIENTATIONS = ("auto", "upright")
 MIRRORS = ("no", "yes", "auto")
 #: coarse scans: raster cells this many point spacings wide (1.2 was measured worse: 270 vs 284 of 294 found)
 COARSE_CELL = 1.0
@@ -51,7 +52,7 @@ class ScanOptions:
     validation: bool = False
     model: str = "ols-rbf"
     rotation_hint_deg: float | None = None
-    orientation: str = "upright"     # no hint, no mark: "upright" (within +-35 deg) or "auto" (galvo model)
+    orientation: str = "auto"        # no hint, no mark: "auto" (galvo model or refusal) or "upright" (hint 0)
     mirror: str = "no"               # the measurement seen from the back: "no", "yes", "auto"
     pixel_size_mm: float | None = None   # images: overrides the file's resolution tags
 
@@ -294,28 +295,21 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
 
 
 def _orientation(uv, spec, q_all, opt) -> orientation.Choice:
-    """Index the lattice and choose the plate's orientation (mark, hint, galvo model)."""
+    """Index the lattice and choose the plate's orientation (mark, hint, galvo model).
+
+    Without an orientation mark or a hint (``orientation="upright"`` is a hint
+    of 0) only the galvo model is left, and it cannot tell a turn by 180 deg
+    (``orientation.choose`` then refuses with the margin).
+    """
     lat = lattice_coords(uv, spec.pitch_mm)
     cands = orientation.candidates(uv, lat, q_all, spec.rows, spec.cols, spec.d_mm, spec.e_mm,
                                    mirror=opt.mirror != "no")
     if opt.mirror == "yes":
         cands = [c for c in cands if c.mirrored]
     hint = opt.rotation_hint_deg
-    upright = hint is None and spec.mark_id is None and opt.orientation == "upright"
-    if upright:
+    if hint is None and opt.orientation == "upright":
         hint = 0.0
-    try:
-        choice = orientation.choose(cands, spec.mark_id, hint)
-    except MarkcalError as exc:
-        if upright and "no orientation within" in str(exc):
-            raise MarkcalError(f"the grid lies near 45 deg ({np.degrees(lat.theta_rad):.1f} deg from the "
-                               "scan axes): its orientation is ambiguous; give --rotation-hint-deg "
-                               "or declare [fiducial] orientation_mark in the plate spec") from None
-        raise
-    if upright:
-        return orientation.Choice(choice.chosen, "assumed upright (no hint, no orientation mark)",
-                                  choice.margin, choice.candidates)
-    return choice
+    return orientation.choose(cands, spec.mark_id, hint)
 
 
 def _fit_ols_rbf(p, q, delta, nodes, q_all, spec, opt) -> dict:
@@ -443,7 +437,7 @@ FLOW = FlowDescriptor(
     name="scan", help="3D scan or flatbed image of a galvo-marked plate -> deviations, correction, report",
     claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
     options={"seed": 0, "validation": False, "no_report": False, "model": "ols-rbf",
-             "rotation_hint_deg": float("nan"), "orientation": "upright", "mirror": "no",
+             "rotation_hint_deg": float("nan"), "orientation": "auto", "mirror": "no",
              "pixel_size_mm": float("nan")},
     key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
                  Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
