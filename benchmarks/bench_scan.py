@@ -24,7 +24,7 @@ def main():
     ap.add_argument("--runs", type=int, default=5)
     ap.add_argument("--seed", type=int, default=7)
     args = ap.parse_args()
-    spec = PlateSpec()
+    spec = PlateSpec(orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}")
     r = render_scan(args.seed, spec, RenderOptions(n_contaminated=1))
