@@ -24,11 +24,11 @@ def main():
     ap.add_argument("--seeds", default="1000-1009")
     args = ap.parse_args()
     a, b = (int(x) for x in args.seeds.split("-"))
-    spec = PlateSpec()
+    spec = PlateSpec(orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
     hx, hy = spec.half_extent_mm
     tmp = tempfile.mkdtemp(prefix="markcal-sweep-")
     rows = []
-    print("seed zconv rot_deg tilt_deg hidden found/361 idx_ok centre_rms centre_max raw_rms "
+    print("seed zconv rot_deg tilt_deg hidden found/360 idx_ok centre_rms centre_max raw_rms "
           "loop_rms loop_max eq9_rms eq9_max neurons cv_rmse")
     for seed in range(a, b + 1):
         rng = np.random.default_rng(seed)
@@ -59,8 +59,8 @@ def main():
         arr[:, 0].max(), arr[:, 1].max(), arr[:, 3].max(), arr[:, 4].max()))
     print("median over seeds: centre_rms {:.4f} loop_rms {:.4f} loop_max {:.4f} eq9_rms {:.4f} eq9_max {:.4f}".format(
         *np.median(arr[:, [0, 3, 4, 5, 6]], axis=0)))
-    print("missed visible fiducials:", sum(r[4] + r[5] != 361 for r in rows) and
-          [(r[0], 361 - r[4] - r[5]) for r in rows if r[4] + r[5] != 361])
+    print("missed visible fiducials:", sum(r[4] + r[5] != 360 for r in rows) and
+          [(r[0], 360 - r[4] - r[5]) for r in rows if r[4] + r[5] != 360])
 
 
 if __name__ == "__main__":

@@ -89,7 +89,8 @@ def main():
     else:
         from markcal.fixtures.scan_plate import ScanOptions as RenderOptions, render_scan, save_scan
         from markcal.stages.plate import PlateSpec
-        r = render_scan(args.seed, PlateSpec(), RenderOptions(n_contaminated=1))
+        # site 0,1 unmarked: without an orientation mark the flow refuses a plate of unknown orientation
+        r = render_scan(args.seed, PlateSpec(orientation_mark=(0, 1)), RenderOptions(n_contaminated=1))
         paths = save_scan(os.path.join(tmp, "plate"), r, formats=("ply",), truth=False)
         cloud, plate = paths["ply"], paths["plate.toml"]
     print(f"cloud: {os.path.getsize(cloud) / 1e6:.0f} MB PLY ({cloud})")

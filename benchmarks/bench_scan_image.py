@@ -40,7 +40,7 @@ def run_once(path, plate, out):
 
 
 def main(dpis, repeats=3, fmt="tif"):
-    spec = PlateSpec()
+    spec = PlateSpec(orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
     for dpi in dpis:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()

@@ -1,5 +1,7 @@
 """Orientation at any angle: rendered plates at random angles (and exactly 45, 90, 135 deg), with and
-without a mirror, through the scan flow in each way of deciding the orientation.
+without a mirror, through the scan flow in each way of deciding the orientation: the plate spec's
+orientation mark (what `markcal render scan` writes by default), no mark and no hint (the default must
+refuse), and no mark with a rotation hint 30 deg off the true angle (unmirrored plates only).
 
 Truth: the renderer's true fiducial positions (its own galvo and pose, not the flow's model). A plate
 counts as right when every detected fiducial sits within 0.1 mm of the true position of its id, wrong
@@ -23,10 +25,10 @@ from markcal.stages.plate import PlateSpec
 
 MARKED = PlateSpec(rows=7, cols=7, orientation_mark=(0, 1))
 PLAIN = PlateSpec(rows=7, cols=7)
-MODES = {  # name -> (spec the flow is given, flow options, mirror allowed)
+MODES = {  # name -> (spec the flow is given, flow options); "hint" options get the plate's angle + 30 deg
     "orientation mark": (MARKED, {"mirror": "auto"}),
-    "galvo model only": (PLAIN, {"orientation": "auto", "mirror": "auto"}),
-    "default (upright)": (PLAIN, {}),
+    "no mark, no hint": (PLAIN, {"mirror": "auto"}),
+    "hint 30 deg off": (PLAIN, {"hint": 30.0}),
 }
 
 
@@ -46,22 +48,28 @@ def outcome(render, spec, opts):
 def main(n=54):
     rng = np.random.default_rng(2026)
     angles = [45.0, 90.0, 135.0, -90.0, 180.0, -45.0] + list(rng.uniform(-180, 180, max(n - 6, 0)))
-    counts = {m: {"right": 0, "wrong": 0, "refused": 0} for m in MODES}
+    counts = {m: {"right": 0, "wrong": 0, "refused": 0, "n/a": 0} for m in MODES}
     margins = []
     for i, ang in enumerate(angles[:n]):
         mirror = bool(i % 2)
         r = render_scan(500 + i, MARKED, ScanOptions(rotation_deg=float(ang), mirror=mirror))
         line = [f"plate {i:2d} {ang:7.1f} deg{' mirrored' if mirror else '         '}"]
         for mode, (spec, opts) in MODES.items():
+            if "hint" in opts:
+                if mirror:
+                    counts[mode]["n/a"] += 1
+                    line.append(f"{mode}: n/a")
+                    continue
+                opts = {"rotation_hint_deg": float(ang) + opts["hint"]}
             o, margin, msg = outcome(r, spec, opts)
             counts[mode][o] += 1
             if mode == "orientation mark" and margin is not None:
                 margins.append(margin)
-            line.append(f"{mode}: {o}")
+            line.append(f"{mode}: {o}" + (f" ({msg[:60]}...)" if o == "refused" and mode == "orientation mark" else ""))
         print(" | ".join(line), flush=True)
-    print("\nmode                  right  wrong  refused   (of", n, "plates)")
+    print("\nmode                  right  wrong  refused  n/a  (of", n, "plates)")
     for mode, c in counts.items():
-        print(f"{mode:20s} {c['right']:6d} {c['wrong']:6d} {c['refused']:8d}")
+        print(f"{mode:20s} {c['right']:6d} {c['wrong']:6d} {c['refused']:8d} {c['n/a']:4d}")
     m = np.array(margins)
     print(f"galvo-model margin (best other orientation / chosen, residual RMS): median {np.median(m):.3f}, "
           f"min {m.min():.3f}, max {m.max():.3f}; decides alone only at >= 2")

@@ -2,13 +2,15 @@
 from __future__ import annotations
 
 import os
-import sys
 
 import numpy as np
 
 from markcal.pipeline.cli_common import add_run_options
 from markcal.pipeline.progress import progress
 from markcal.stages.errors import MarkcalError
+from markcal.stages.plate import DEFAULT_ORIENTATION_MARK
+
+DEFAULT_MARK_TEXT = ",".join(str(v) for v in DEFAULT_ORIENTATION_MARK)
 
 
 def cmd_scan(args) -> int:
@@ -30,10 +32,6 @@ def cmd_scan(args) -> int:
         f"({s['orientation_method']}; galvo-model margin {s['orientation_margin'] or float('inf'):.2f})")
     say(f"{s['n_detected']}/{s['n_expected']} fiducials, deviation RMS {s['rms_mm']:.4f} mm, "
         f"max {s['max_mm']:.4f} mm; model {s['model']}, CV RMSE {s['cv_rmse_mm']:.4f} mm")
-    if s["orientation_method"].startswith("assumed"):            # even with --quiet: it decides the table
-        print(f"markcal: warning: {args.cloud}: orientation assumed upright (within 35 deg, not mirrored); the "
-              "galvo field cannot tell quarter turns apart, so a plate laid otherwise needs --rotation-hint-deg "
-              "or an orientation mark", file=sys.stderr)
     if res.missing_ids:
         say(f"not detected: ids {res.missing_ids}")
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
@@ -97,7 +95,8 @@ def cmd_render_scan_image(args) -> int:
 
 
 def _parse_mark(text, rows, cols) -> tuple:
-    if not text:
+    """``ROW,COL`` of the site the rendered plate leaves unmarked; ``none``: every site marked."""
+    if text.strip().lower() == "none":
         return ()
     try:
         mark = tuple(int(v) for v in text.split(","))
@@ -123,10 +122,11 @@ def register(sub, render_sub) -> None:
                     help="correction model: the paper's OLS RBF network (default), the galvo model of paper 004 "
                          "eqs. 1-5 plus a thin-plate spline, a spline, a cubic, or auto (lowest k-fold CV error)")
     sc.add_argument("--rotation-hint-deg", type=float, default=None,
-                    help="the plate's approximate in-plane angle in the scan (deg, +-35): picks the orientation")
-    sc.add_argument("--orientation", default="upright", choices=["upright", "auto"],
-                    help="without a hint or an orientation mark: assume the plate lies within +-35 deg of upright "
-                         "(default), or let the galvo model choose (refused unless its margin is wide)")
+                    help="the plate's in-plane angle in the scan to within +-44 deg (0: laid upright): picks the "
+                         "orientation when the plate spec declares no orientation mark")
+    sc.add_argument("--orientation", default="auto", choices=["auto", "upright"],
+                    help="without a hint or an orientation mark: let the galvo model choose, which refuses unless its "
+                         "margin is wide (default; a turn by 180 deg always ties), or upright (= --rotation-hint-deg 0)")
     sc.add_argument("--mirror", default="no", choices=["no", "yes", "auto"],
                     help="the measurement sees the plate from the back (flatbed face down): no, yes, auto")
     sc.add_argument("--no-report", action="store_true", help="skip report.html")
@@ -146,7 +146,9 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--contaminated", type=int, default=0, help="fiducials hidden under dirt")
     rs.add_argument("--rotation-deg", type=float, default=None, help="in-plane turn of the plate (default: random +-15)")
     rs.add_argument("--mirror", action="store_true", help="render the cloud as seen from the back")
-    rs.add_argument("--orientation-mark", default=None, help="ROW,COL of a grid site left unmarked")
+    rs.add_argument("--orientation-mark", default=DEFAULT_MARK_TEXT,
+                    help="ROW,COL of the grid site left unmarked, so the scan can tell the plate's orientation "
+                         "(default 0,1; none: every site marked, the scan then needs --rotation-hint-deg)")
     rs.add_argument("--formats", default="ply,npy", help="comma list of ply, npy")
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_scan)
@@ -165,7 +167,9 @@ def register(sub, render_sub) -> None:
     ri.add_argument("--rgb", action="store_true")
     ri.add_argument("--jpeg-quality", type=int, default=None, help="pass the pixels through JPEG at this quality")
     ri.add_argument("--dust", type=int, default=60, help="dust specks")
-    ri.add_argument("--orientation-mark", default=None, help="ROW,COL of a grid site left unmarked")
+    ri.add_argument("--orientation-mark", default=DEFAULT_MARK_TEXT,
+                    help="ROW,COL of the grid site left unmarked, so the scan can tell the plate's orientation "
+                         "(default 0,1; none: every site marked, the scan then needs --rotation-hint-deg)")
     ri.add_argument("--format", choices=["tif", "png", "jpg"], default="tif")
     ri.add_argument("--no-dpi", action="store_true", help="write no resolution tags (the scan then needs --pixel-size-mm)")
     ri.add_argument("--quiet", action="store_true")

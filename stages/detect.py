@@ -95,6 +95,26 @@ def hough_centres(filled: np.ndarray, radius_px: float, min_distance_px: float,
     return (peaks[:, ::-1].astype(float) + 0.5) * f - 0.5
 
 
+def template_centres(filtered: np.ndarray, radii_px, min_distance_px: float,
+                     threshold: float = 0.35) -> np.ndarray:
+    """Coarse centres as peaks of the double-ring template's normalised match over the whole image.
+
+    On coarse rasters (0.2 mm cells, 3 samples across the ring gap) Canny
+    leaves some rings open, so their discs do not fill and the Hough
+    transform misses them; the match sees the ring pattern itself.
+
+    Returns
+    -------
+    ndarray, shape (k, 2)
+        (col, row) pixel centres, strongest first.
+    """
+    tpl = ring_template(radii_px)
+    score = cv2.matchTemplate(np.ascontiguousarray(filtered, np.float32), tpl, cv2.TM_CCOEFF_NORMED)
+    peaks = peak_local_max(score, min_distance=max(1, int(min_distance_px)), threshold_abs=threshold,
+                           exclude_border=False)
+    return peaks[:, ::-1].astype(float) + tpl.shape[0] // 2
+
+
 def ring_template(radii_px, width_px: float = 1.2) -> np.ndarray:
     """Dark double ring on a zero-mean background, for template matching."""
     half = int(np.ceil(max(radii_px) + 4 * width_px))

@@ -11,10 +11,10 @@ is row 0 column 0. Three kinds of evidence can:
 - the **physical galvo model** (paper 004 eqs. 1-5): the orientation in which
   the model explains the deviations best, when it wins by a wide margin.
 
-The model is closed under a turn by 180 deg and under the mirrors about the
-grid axes (its zero offsets, decentring and tilt terms change sign), and with
-free mirror gains it nearly explains a 90 deg turn too, so its margin is
-reported but on typical machines is too narrow to decide alone.
+A two-mirror galvo's field is even in x and in y, so the model fits a turn by
+180 deg and the mirrors about the grid axes exactly as well (its zero offsets,
+decentring and tilt terms change sign): its margin is reported, but it cannot
+decide alone, and without a mark or a hint ``choose`` refuses.
 """
 from __future__ import annotations
 
@@ -28,8 +28,9 @@ from .register import Lattice, Rigid2D, place_block, rigid_fit
 
 #: the physical model must explain the field this many times better than in any other orientation
 MIN_MARGIN = 2.0
-#: a hint must lie within this many degrees of a candidate (the candidates are 90 deg apart)
-HINT_WINDOW_DEG = 35.0
+#: a hint must lie within this many degrees of a candidate (the candidates are 90 deg apart, so a
+#: plate within +-44 deg of the hint is taken; at 44-46 deg it could be either and is refused)
+HINT_WINDOW_DEG = 44.0
 
 
 @dataclass(frozen=True)
@@ -158,9 +159,10 @@ def choose(cands: list, mark_id: int | None = None, hint_deg: float | None = Non
     if hint_deg is not None:
         near = [c for c in pool if _angle_diff_deg(c.rotation_deg, hint_deg) <= HINT_WINDOW_DEG]
         if not near:
-            got = ", ".join(c.label for c in pool)
+            got = ", ".join(sorted({c.label for c in pool}))
             raise MarkcalError(f"no orientation within {HINT_WINDOW_DEG:.0f} deg of --rotation-hint-deg "
-                               f"{hint_deg:g}: the grid lies at {got}")
+                               f"{hint_deg:g}: the grid lies at {got}; give the plate's angle to within "
+                               f"{HINT_WINDOW_DEG:.0f} deg")
         pool = near
         if method == "physical model":
             method = "rotation hint"
@@ -173,12 +175,24 @@ def choose(cands: list, mark_id: int | None = None, hint_deg: float | None = Non
         second = ranked[1]
         m_pool = second.phys_rms_mm / max(best.phys_rms_mm, 1e-12)
         if m_pool < min_margin:
-            raise MarkcalError(
-                f"the plate's orientation is ambiguous: the galvo model explains the field at {best.label} "
-                f"({best.phys_rms_mm * 1000:.1f} um RMS) and at {second.label} "
-                f"({second.phys_rms_mm * 1000:.1f} um RMS) nearly equally (margin {m_pool:.2f} < {min_margin:g}); "
-                "give --rotation-hint-deg (the plate's angle in the scan) or declare "
-                "[fiducial] orientation_mark in the plate spec")
+            raise MarkcalError(f"the plate's orientation is ambiguous: {_why_open(ranked, mark_id, hint_deg)}; "
+                               f"the galvo model fits {best.label} ({best.phys_rms_mm * 1000:.1f} um RMS) and "
+                               f"{second.label} ({second.phys_rms_mm * 1000:.1f} um RMS) nearly equally "
+                               f"(margin {m_pool:.2f}, needs {min_margin:g}; a galvo field looks alike turned by "
+                               f"180 deg); give --rotation-hint-deg ANGLE (the plate's angle in the scan, within "
+                               f"{HINT_WINDOW_DEG:.0f} deg; 0: laid upright) or declare [fiducial] "
+                               "orientation_mark = [row, col] (a site left unmarked) in the plate spec")
         method = "physical model" if method == "physical model" else method + " + physical model"
     return Choice(chosen=best, method=method, margin=float(margin), candidates=tuple(cands))
 
+
+def _why_open(pool: list, mark_id, hint_deg) -> str:
+    """Why more than one orientation is still open (for the refusal message)."""
+    if mark_id is None and hint_deg is None:
+        return "the plate spec declares no orientation mark and no --rotation-hint-deg was given"
+    if len({c.mirrored for c in pool}) == 2:
+        return f"{len(pool)} orientations (mirrored and not) are consistent with the evidence (give --mirror yes or no)"
+    if mark_id is not None:
+        return (f"the orientation mark's site is empty in {len(pool)} orientations "
+                "(another mark is missing where the mark would be if the plate were turned)")
+    return f"{len(pool)} orientations lie within {HINT_WINDOW_DEG:.0f} deg of the hint"

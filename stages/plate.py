@@ -6,6 +6,11 @@ from dataclasses import dataclass
 import numpy as np
 
 
+#: the site (row, col) rendered plates leave unmarked: on no symmetry axis of a square grid, so
+#: it tells all 8 turns and mirrors apart
+DEFAULT_ORIENTATION_MARK = (0, 1)
+
+
 @dataclass(frozen=True)
 class PlateSpec:
     """What the GLS was asked to mark, as in PLATE.toml.

@@ -6,9 +6,9 @@ import pytest
 
 from markcal.fixtures.scan_plate import ScanOptions, render_scan
 from markcal.fixtures.scan_plate import plate_spec_toml
-from markcal.stages.plate import PlateSpec
+from markcal.stages.plate import DEFAULT_ORIENTATION_MARK, PlateSpec
 
-SMALL = PlateSpec(rows=7, cols=7)
+SMALL = PlateSpec(rows=7, cols=7, orientation_mark=DEFAULT_ORIENTATION_MARK)
 
 
 def save_render(render, folder, name="cloud.npy"):

@@ -57,6 +57,22 @@ def test_rotation_hint_picks_the_quarter_turn(tmp_path):
     assert abs(res.summary["in_plane_rotation_deg"]) == pytest.approx(180.0, abs=0.2)
 
 
+@pytest.mark.parametrize("rot,hint", [(40.0, 0.0), (-130.0, -90.0)])
+def test_hint_takes_the_plate_within_44_deg_of_it(tmp_path, rot, hint):
+    r, res = _scan(tmp_path, PLAIN, 39, rot, rotation_hint_deg=hint)
+    assert _index_error_mm(res, r).max() <= RIGHT_MM
+    assert res.summary["in_plane_rotation_deg"] == pytest.approx(rot, abs=0.2)
+
+
+def test_upright_option_is_a_hint_of_0_and_refuses_at_45_deg(tmp_path):
+    r, res = _scan(tmp_path, PLAIN, 40, -30.0, orientation="upright")
+    assert _index_error_mm(res, r).max() <= RIGHT_MM and res.summary["orientation_method"] == "rotation hint"
+    r = render_scan(41, PLAIN, ScanOptions(rotation_deg=45.0))
+    cloud, _ = save_render(r, str(tmp_path / "45"))
+    with pytest.raises(MarkcalError, match=r"no orientation within 44 deg of --rotation-hint-deg 0"):
+        run_scan(cloud, PLAIN, FlowOptions(orientation="upright"))
+
+
 def test_near_45_deg_without_evidence_is_refused(tmp_path):
     r = render_scan(35, PLAIN, ScanOptions(rotation_deg=45.0))
     cloud, _ = save_render(r, str(tmp_path))
@@ -72,15 +88,18 @@ def test_galvo_model_alone_refuses_and_reports_its_margin(tmp_path):
         run_scan(cloud, PLAIN, FlowOptions(orientation="auto"))
 
 
-def test_cli_ambiguous_orientation_is_one_line_exit_1_nothing_written(tmp_path):
-    r = render_scan(37, PLAIN, ScanOptions(rotation_deg=44.0))
+@pytest.mark.parametrize("rot", [44.0, 3.0])
+def test_cli_ambiguous_orientation_is_one_line_exit_1_nothing_written(tmp_path, rot):
+    # no orientation mark and no hint: refused by default, even for a plate laid upright
+    r = render_scan(37, PLAIN, ScanOptions(rotation_deg=rot))
     cloud, plate = save_render(r, str(tmp_path))
     out = tmp_path / "out"
     p = subprocess.run([sys.executable, "-m", "markcal.pipeline.cli", "scan", cloud, "--plate", plate,
                         "--out", str(out), "--quiet"], capture_output=True, text=True)
     assert p.returncode == 1
     lines = p.stderr.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("markcal: error: ") and "orientation" in lines[0]
+    assert len(lines) == 1 and lines[0].startswith(f"markcal: error: {cloud}: the plate's orientation is ambiguous")
+    assert "margin 1.0" in lines[0] and "--rotation-hint-deg" in lines[0] and "orientation_mark" in lines[0]
     assert not (out / "summary.json").exists()
 
 

@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from markcal.pipeline.config import read_plate_spec
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext, spec_beside
@@ -32,11 +33,18 @@ MSE_GOALS_MM2 = (1e-6, 3e-6, 1e-5, 3e-5, 1e-4, 3e-4, 5e-4, 1e-3)
 AREAS = {"full": None, "inner_150": 75.0, "inner_50": 25.0}
 #: correction models: the paper's OLS RBF network, or the grid flow's galvo models (stages/galvo_fit)
 MODELS = ("ols-rbf", *KINDS, "auto")
-#: how the orientation is decided without a hint or an orientation mark
-ORIENTATIONS = ("upright", "auto")
+#: without a hint or an orientation mark: "auto" (the galvo model decides, or the flow refuses)
+#: or "upright" (the same as a rotation hint of 0 deg)
+ORIENTATIONS = ("auto", "upright")
 MIRRORS = ("no", "yes", "auto")
 #: coarse scans: raster cells this many point spacings wide (1.2 was measured worse: 270 vs 284 of 294 found)
 COARSE_CELL = 1.0
+#: rasters coarser than this (mm) add template-match candidates to the Hough ones (0.2 mm spacing: Hough
+#: alone found 284 of 294 marks over seeds 5-10, every miss without a candidate near it)
+COARSE_TEMPLATE_PX_MM = 0.15
+#: clouds whose points are sparser than this many per ring gap are refused: at 0.5 (0.4 mm spacing on the
+#: 2.5/2.7 mm ring) the fits are junk and the grid was indexed wrongly; 1.0 (0.2 mm) finds every mark
+MIN_GAP_SAMPLES = 0.6
 
 
 @dataclass(frozen=True)
@@ -51,7 +59,7 @@ class ScanOptions:
     validation: bool = False
     model: str = "ols-rbf"
     rotation_hint_deg: float | None = None
-    orientation: str = "upright"     # no hint, no mark: "upright" (within +-35 deg) or "auto" (galvo model)
+    orientation: str = "auto"        # no hint, no mark: "auto" (galvo model or refusal) or "upright" (hint 0)
     mirror: str = "no"               # the measurement seen from the back: "no", "yes", "auto"
     pixel_size_mm: float | None = None   # images: overrides the file's resolution tags
 
@@ -136,6 +144,12 @@ def _detect(raster, spec, opt, say, fine=None, spacing_mm=None):
     coarse = detect.hough_centres(edges.filled, r_px, 0.5 * spec.pitch_mm / px, 2 * spec.n_fiducials + 20)
     if len(coarse) == 0:
         raise MarkcalError("no circles found on the plate" + _what_i_saw(spec, raster, spacing_mm))
+    if px > COARSE_TEMPLATE_PX_MM:
+        # coarse rasters: Canny leaves weak rings open and Hough misses them; add the template's peaks
+        more = detect.template_centres(edges.filtered, [r / px for r in spec.ring_radii_mm], 0.5 * spec.pitch_mm / px)
+        if len(more):
+            far = cKDTree(coarse).query(more)[0] > 0.25 * spec.pitch_mm / px
+            coarse = np.vstack([coarse, more[far]])
     coarse = detect.match_centres(edges.filtered, coarse, [r / px for r in spec.ring_radii_mm])
     say(f"sub-pixel ring fits of {len(coarse)} candidates")
     fit = detect.refine_rings(fine or raster, raster.to_mm(coarse), spec.ring_radii_mm,
@@ -149,6 +163,9 @@ def _run(cloud, source, spec, opt, say, t0):
     say("projecting onto the plate plane")
     raster = project(cloud.xyz_mm, cloud.intensity, plane, opt.pixel_mm)
     spacing = point_spacing_mm(raster)
+    radii = sorted(spec.ring_radii_mm)
+    if radii[-1] - radii[0] > 0 and (radii[-1] - radii[0]) / spacing < MIN_GAP_SAMPLES:
+        raise MarkcalError("the scan is too coarse to resolve the double rings" + _what_i_saw(spec, raster, spacing))
     if spacing > 1.3 * opt.pixel_mm:
         # a coarse scan: one cell per point, so the rings are not broken up by empty cells
         say(f"coarse scan (points {spacing:.2f} mm apart): re-projecting on {spacing:.2f} mm cells")
@@ -294,28 +311,21 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
 
 
 def _orientation(uv, spec, q_all, opt) -> orientation.Choice:
-    """Index the lattice and choose the plate's orientation (mark, hint, galvo model)."""
+    """Index the lattice and choose the plate's orientation (mark, hint, galvo model).
+
+    Without an orientation mark or a hint (``orientation="upright"`` is a hint
+    of 0) only the galvo model is left, and it cannot tell a turn by 180 deg
+    (``orientation.choose`` then refuses with the margin).
+    """
     lat = lattice_coords(uv, spec.pitch_mm)
     cands = orientation.candidates(uv, lat, q_all, spec.rows, spec.cols, spec.d_mm, spec.e_mm,
                                    mirror=opt.mirror != "no")
     if opt.mirror == "yes":
         cands = [c for c in cands if c.mirrored]
     hint = opt.rotation_hint_deg
-    upright = hint is None and spec.mark_id is None and opt.orientation == "upright"
-    if upright:
+    if hint is None and opt.orientation == "upright":
         hint = 0.0
-    try:
-        choice = orientation.choose(cands, spec.mark_id, hint)
-    except MarkcalError as exc:
-        if upright and "no orientation within" in str(exc):
-            raise MarkcalError(f"the grid lies near 45 deg ({np.degrees(lat.theta_rad):.1f} deg from the "
-                               "scan axes): its orientation is ambiguous; give --rotation-hint-deg "
-                               "or declare [fiducial] orientation_mark in the plate spec") from None
-        raise
-    if upright:
-        return orientation.Choice(choice.chosen, "assumed upright (no hint, no orientation mark)",
-                                  choice.margin, choice.candidates)
-    return choice
+    return orientation.choose(cands, spec.mark_id, hint)
 
 
 def _fit_ols_rbf(p, q, delta, nodes, q_all, spec, opt) -> dict:
@@ -370,8 +380,9 @@ def _what_i_saw(spec, raster, spacing_mm) -> str:
     msg = f"; points are {spacing_mm:.3f} mm apart"
     if gap > 0:
         msg += f", so the {gap:g} mm gap between the rings spans {gap / spacing_mm:.1f} samples"
-        if gap / spacing_mm < 3:
-            msg += " (at least 3 are needed)"
+        if gap / spacing_mm < 1:
+            msg += (f" (at least {MIN_GAP_SAMPLES:g} are needed, a point spacing of "
+                    f"{gap / MIN_GAP_SAMPLES:.2f} mm; every mark is found at 1)")
     return msg
 
 
@@ -443,7 +454,7 @@ FLOW = FlowDescriptor(
     name="scan", help="3D scan or flatbed image of a galvo-marked plate -> deviations, correction, report",
     claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
     options={"seed": 0, "validation": False, "no_report": False, "model": "ols-rbf",
-             "rotation_hint_deg": float("nan"), "orientation": "upright", "mirror": "no",
+             "rotation_hint_deg": float("nan"), "orientation": "auto", "mirror": "no",
              "pixel_size_mm": float("nan")},
     key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
                  Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
