@@ -56,6 +56,7 @@ def main(argv=None):
     ap.add_argument("--om-first-seed", type=int, default=1000)
     ap.add_argument("--single-seeds", type=int, default=10, help="single real-like imprints (issue 20 goals)")
     ap.add_argument("--micro-seeds", type=int, default=10, help="single imprints in OM and SEM micrograph renders")
+    ap.add_argument("--micro-first-seed", type=int, default=3000, help="first micrograph seed")
     ap.add_argument("--rounded-seeds", type=int, default=8, help="arrays with Gaussian tip rounding (depth)")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
@@ -91,13 +92,14 @@ def _micrograph_sweep(a):
     """Single imprints in micrograph renders (fixtures/indent_micrograph, seeds 3000+), OM and SEM."""
     from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
     from markcal.stages.indent_micrograph import measure_micrograph
-    print(f"\nmicrographs, seeds 3000..{2999 + a.micro_seeds}, 360 x 480 at 0.1 µm (SEM with a 40-row bar); "
+    s0 = a.micro_first_seed
+    print(f"\nmicrographs, seeds {s0}..{s0 + a.micro_seeds - 1}, 360 x 480 at 0.1 µm (SEM with a 40-row bar); "
           "goals: d within 1 % or 1 px, corners 1.5 px")
     print("style seed  d_px    d_err_%  d_err_px  corner_max_px  n  wall_s")
     for style in ("om", "sem"):
         v = []
         for i in range(a.micro_seeds):
-            seed = 3000 + i
+            seed = s0 + i
             r = render_micrograph(seed, MicrographOptions(style=style, bar_rows=40 if style == "sem" else 0))
             t = r.truth["imprints"][0]
             px = r.pixel_um
