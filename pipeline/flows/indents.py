@@ -123,7 +123,9 @@ def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m
     t0 = time.perf_counter()
     img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     try:
-        return _measure(img, spec, opt, say, t0)
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1):          # small matrices: one BLAS thread is fastest and never oversubscribes
+            return _measure(img, spec, opt, say, t0)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
 
