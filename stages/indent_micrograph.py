@@ -302,15 +302,28 @@ def _refine(img, corners, apex, d_px):
         if i == 0:
             # the coarse outline may hold a halo or pile-up: start from it and from shrunk copies
             best = None
-            for shrink in (1.0, 0.85, 0.7):
+            for shrink in (1.0, 0.85, 0.7, 0.55):
                 q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
                 q = _lm(model.residual, q, 0.05 * f, 6)
                 c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
                 if best is None or c < best[0]:
                     best = (c, q)
             p = _lm(model.residual, best[1], 0.05 * f, 20)
-        else:
+        elif i < len(levels) - 1:
             p = _lm(model.residual, p, 0.05 * f, 8)
+        else:
+            # last level: also from the corners pulled 2 px towards the apex (the outer flank of a dark
+            # edge line is a local minimum a few pixels outside the edge)
+            best = None
+            for pull_px in (0.0, 2.0):
+                c = p[2:].reshape(4, 2)
+                v = c - p[:2]
+                q = np.concatenate([p[:2], (c - pull_px * v / np.hypot(*v.T)[:, None]).ravel()])
+                q = _lm(model.residual, q, 0.05 * f, 8)
+                cost = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                if best is None or cost < best[0]:
+                    best = (cost, q)
+            p = best[1]
     return p[2:].reshape(4, 2), p[:2], model
 
 
