@@ -1,4 +1,5 @@
-"""Indents flow: speed (512 x 512 AFM map, 25 imprints, goal <= 1 s) and accuracy on unseen renders.
+"""Indents flow: the issue's speed goals (256² single map, 512² and 1024² AFM arrays, 1 Mpx OM array,
+the real 1.7 Mpx SEM image; wall and CPU seconds, load average) and accuracy on unseen renders.
 
 Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4] [--micro-seeds 10]
        [--rounded-seeds 8] [--single-seeds 10]
@@ -56,23 +57,14 @@ def main(argv=None):
     ap.add_argument("--om-first-seed", type=int, default=1000)
     ap.add_argument("--single-seeds", type=int, default=10, help="single real-like imprints (issue 20 goals)")
     ap.add_argument("--micro-seeds", type=int, default=10, help="single imprints in OM and SEM micrograph renders")
+    ap.add_argument("--micro-first-seed", type=int, default=3000, help="first micrograph seed")
     ap.add_argument("--rounded-seeds", type=int, default=8, help="arrays with Gaussian tip rounding (depth)")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
     print("machine: 2 cores shared with other jobs; timings are noisy", file=sys.stderr)
 
     if a.runs:
-        r = render_afm(1000, AfmOptions())
-        path, spec = _files(tmp, r)
-        times, cpu = [], []
-        for _ in range(a.runs):
-            t0, c0 = time.perf_counter(), time.process_time()
-            f = measure_file(path, spec, IndentsOptions())
-            times.append(time.perf_counter() - t0)
-            cpu.append(time.process_time() - c0)
-        print(f"speed: 512x512 AFM map, {len(f.imprints)} imprints: wall median {np.median(times):.3f} s "
-              f"(min {min(times):.3f}, max {max(times):.3f}), CPU median {np.median(cpu):.3f} s, {a.runs} runs; "
-              "goal <= 1 s", flush=True)
+        _speed(a, tmp)
 
     if a.micro_seeds:
         _micrograph_sweep(a)
@@ -87,17 +79,59 @@ def main(argv=None):
         _om_sweep(a, tmp)
 
 
+def _time_file(path, spec, runs):
+    """Wall and CPU seconds of ``measure_file`` (lists over ``runs``) and the last result."""
+    times, cpu = [], []
+    for _ in range(runs):
+        t0, c0 = time.perf_counter(), time.process_time()
+        f = measure_file(path, spec, IndentsOptions())
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    return times, cpu, f
+
+
+def _speed(a, tmp):
+    """The issue's speed goals: file in memory -> table (``measure_file``), median of ``--runs``."""
+    from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
+    print(f"speed, median of {a.runs} runs of measure_file (read, level, detect, measure); load average "
+          f"{' '.join(f'{v:.1f}' for v in os.getloadavg())} at start")
+    print("case                                   n   wall_s  (min)    cpu_s  goal_s")
+    cases = []
+    r = render_single(2000, SingleOptions())
+    path = os.path.join(tmp, "single.ibw")
+    with open(path, "wb") as fh:
+        fh.write(single_ibw(r))
+    cases.append(("256x256 single-imprint AFM map (IBW)", path, None, 0.3))
+    for size, goal in ((512, 0.5), (1024, 2.0)):
+        r = render_afm(1000, AfmOptions(size_px=size))
+        sub = os.path.join(tmp, f"afm{size}")
+        os.makedirs(sub, exist_ok=True)
+        path, spec = _files(sub, r)
+        cases.append((f"{size}x{size} AFM map, 5x5 array", path, spec, goal))
+    r = render_om(1000, OmOptions(size_px=1024, pixel_um=0.05, nominal_um=2.0))
+    sub = os.path.join(tmp, "om1024")
+    os.makedirs(sub, exist_ok=True)
+    path, spec = _files(sub, r)
+    cases.append(("1024x1024 OM micrograph, 5x5 array", path, spec, 2.0))
+    for name, path, spec, goal in cases:
+        times, cpu, f = _time_file(path, spec, a.runs)
+        print(f"{name:38s} {len(f.imprints):2d} {np.median(times):7.3f} ({min(times):6.3f}) {np.median(cpu):7.3f}  "
+              f"{goal:5.1f}", flush=True)
+    print(f"load average {' '.join(f'{v:.1f}' for v in os.getloadavg())} at end")
+
+
 def _micrograph_sweep(a):
     """Single imprints in micrograph renders (fixtures/indent_micrograph, seeds 3000+), OM and SEM."""
     from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
     from markcal.stages.indent_micrograph import measure_micrograph
-    print(f"\nmicrographs, seeds 3000..{2999 + a.micro_seeds}, 360 x 480 at 0.1 µm (SEM with a 40-row bar); "
+    s0 = a.micro_first_seed
+    print(f"\nmicrographs, seeds {s0}..{s0 + a.micro_seeds - 1}, 360 x 480 at 0.1 µm (SEM with a 40-row bar); "
           "goals: d within 1 % or 1 px, corners 1.5 px")
     print("style seed  d_px    d_err_%  d_err_px  corner_max_px  n  wall_s")
     for style in ("om", "sem"):
         v = []
         for i in range(a.micro_seeds):
-            seed = 3000 + i
+            seed = s0 + i
             r = render_micrograph(seed, MicrographOptions(style=style, bar_rows=40 if style == "sem" else 0))
             t = r.truth["imprints"][0]
             px = r.pixel_um
@@ -134,15 +168,12 @@ def _real_sem(a):
     if not path.is_file():
         print("real SEM image not present: skipped")
         return
-    times = []
-    for _ in range(max(1, a.runs)):
-        t0 = time.perf_counter()
-        f = measure_file(str(path), None, IndentsOptions())
-        times.append(time.perf_counter() - t0)
+    times, cpu, f = _time_file(str(path), None, max(1, a.runs))
     t = f.table
-    print(f"real SEM image: {len(t['id'])} imprint(s), d1 {t['diag1_um'][0]:.3f} µm, d2 {t['diag2_um'][0]:.3f} µm, "
-          f"d {t['d_um'][0]:.3f} µm, bar {f.info.get('bar_rows')} rows; wall median {np.median(times):.2f} s "
-          f"(min {min(times):.2f}), goal <= 2 s")
+    print(f"real SEM image (1.7 Mpx): {len(t['id'])} imprint(s), d1 {t['diag1_um'][0]:.3f} µm, d2 "
+          f"{t['diag2_um'][0]:.3f} µm, d {t['d_um'][0]:.3f} µm, bar {f.info.get('bar_rows')} rows; wall median "
+          f"{np.median(times):.2f} s (min {min(times):.2f}), CPU median {np.median(cpu):.2f} s, goal <= 2 s; "
+          f"load average {os.getloadavg()[0]:.1f}")
 
 
 def _rounded_sweep(a):

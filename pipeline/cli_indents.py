@@ -9,16 +9,16 @@ from markcal.pipeline.progress import progress
 
 
 def cmd_indents(args) -> int:
-    from markcal.pipeline.config import read_array_spec
-    from markcal.pipeline.flows.indents import indents_options, run_indents
+    from markcal.pipeline.flows.indents import indents_options, read_indents_spec, run_indents, with_spec_load
     from markcal.pipeline.cli_common import run_options
     from markcal.pipeline.registry import exit_status, get_flow, judge
 
     say = progress(args.quiet)
-    spec = read_array_spec(args.array) if args.array else None
+    spec, load = read_indents_spec(args.array) if args.array else (None, None)
     flow = get_flow("indents")
     options = {**flow.descriptor.options, **{k: getattr(args, k) for k in flow.descriptor.options
                                              if getattr(args, k, None) is not None}}
+    options = with_spec_load(options, load)           # a spec with only [indenter] load_mN: single imprints
     res = run_indents(args.images, spec, indents_options(options), progress=say)      # several files pooled
     judge("indents", res.summary, list(args.images), args.array, **run_options(args))
     say("writing tables and report")
@@ -91,7 +91,8 @@ def register(sub, render_sub) -> None:
     p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM, SEM or AFM), AFM maps .gsf, .gwy, .ibw, Bruker "
                                                "NanoScope (.spm, .000-.999; by content), Nanosurf .nid, JPK .jpk, "
                                                "WSxM .stp/.top")
-    p.add_argument("--array", help="array spec (ARRAY.toml): rows, cols, pitch_um, nominal_diameter_um")
+    p.add_argument("--array", help="array spec (ARRAY.toml): [array] rows, cols, pitch_um, nominal_diameter_um; "
+                                    "[indenter] load_mN (a file with only [indenter]: single imprints)")
     p.add_argument("--kind", choices=["afm", "om"], help="override the kind guessed from the file")
     p.add_argument("--pixel-size-um", type=_positive, help="pixel size (µm); overrides the file's")
     p.add_argument("--channel", help="AFM channel to measure (default: the height/topography channel, trace)")

@@ -34,6 +34,9 @@ MAX_FIT_RMS = 3.0
 MIN_DIAGONAL_PX = 60.0
 #: a corner on a faint edge moves to the end of its ridge when they are farther apart than this (px)
 RIDGE_OVERRIDE_PX = 3.0
+#: softness (logistic scale, px) of the edges at full resolution: a step blurred by a Gaussian of
+#: about 1 px (the optics or beam at usual sampling, plus pixel integration)
+EDGE_SOFT_PX = 0.57
 
 
 def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
@@ -167,7 +170,7 @@ class _QuadModel:
         self.X, self.Y, self.z = X[keep], Y[keep], z[keep]
         self.xm, self.ym = float(self.X.mean()), float(self.Y.mean())
         self.xs = max(float(np.ptp(self.X)), 1.0)
-        self.soft = 0.45 * f
+        self.soft = max(0.45 * f, EDGE_SOFT_PX)
         self.line_px = max(1.2, 0.6 * f)                    # ridge and edge lines: width (full-res px)
         d_est = 2 * np.max(np.hypot(*(corners - apex).T))
         self.halo_px = max(0.08 * d_est, 2.0 * f)            # pile-up halo outside: distance of its crest
@@ -190,8 +193,11 @@ class _QuadModel:
             w.append(expit(e[k] / s) * wedge)
             edge_line = edge_line + np.exp(-0.5 * (e[k] / lw) ** 2) * wedge
             glow = glow + np.exp(-np.abs(e[k]) / (3 * lw)) * wedge
+        # inside the blurred quadrilateral: the product of its four soft half-planes (a blurred
+        # corner holds a quarter of the contrast at its tip, not half as a sum over wedges gives)
+        inside = np.prod(expit(np.array(e) / s), axis=0)
         w = np.array(w)
-        inside = w.sum(axis=0)
+        w = w / (w.sum(axis=0) + 1e-12) * inside
         out = np.clip(1.0 - inside, 0.0, 1.0)
         ridge = 0.0
         for k in range(4):
@@ -296,15 +302,28 @@ def _refine(img, corners, apex, d_px):
         if i == 0:
             # the coarse outline may hold a halo or pile-up: start from it and from shrunk copies
             best = None
-            for shrink in (1.0, 0.85, 0.7):
+            for shrink in (1.0, 0.85, 0.7, 0.55):
                 q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
                 q = _lm(model.residual, q, 0.05 * f, 6)
                 c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
                 if best is None or c < best[0]:
                     best = (c, q)
             p = _lm(model.residual, best[1], 0.05 * f, 20)
-        else:
+        elif i < len(levels) - 1:
             p = _lm(model.residual, p, 0.05 * f, 8)
+        else:
+            # last level: also from the corners pulled 2 px towards the apex (the outer flank of a dark
+            # edge line is a local minimum a few pixels outside the edge)
+            best = None
+            for pull_px in (0.0, 2.0):
+                c = p[2:].reshape(4, 2)
+                v = c - p[:2]
+                q = np.concatenate([p[:2], (c - pull_px * v / np.hypot(*v.T)[:, None]).ravel()])
+                q = _lm(model.residual, q, 0.05 * f, 8)
+                cost = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                if best is None or cost < best[0]:
+                    best = (cost, q)
+            p = best[1]
     return p[2:].reshape(4, 2), p[:2], model
 
 

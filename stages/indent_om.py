@@ -23,11 +23,11 @@ __all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array"]
 def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> np.ndarray:
     """Smooth illumination of a micrograph, the dots and their rims left out.
 
-    Median over ``window_um`` on a 4x coarser grid (dots and rims cover a
-    small part of it), Gaussian smoothing, then bilinear interpolation back to
-    every pixel (pixel centres aligned).
+    Median over ``window_um`` on a coarser grid (4x, or coarser so the window spans about
+    15 of its cells; dots and rims cover a small part of it), Gaussian smoothing, then
+    bilinear interpolation back to every pixel (pixel centres aligned).
     """
-    f = 4
+    f = max(4, int(round(window_um / (15 * pixel_um))))
     ny, nx = img.shape
     py, px_ = (-ny) % f, (-nx) % f
     padded = np.pad(img.astype(np.float64), ((0, py), (0, px_)), mode="edge")

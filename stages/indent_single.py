@@ -146,8 +146,9 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
 
 # ----------------------------------------------------------------------------- measuring
 
-def _bilinear(img, r, c, order=1):
-    return ndimage.map_coordinates(img, [np.atleast_1d(r), np.atleast_1d(c)], order=order, mode="nearest")
+def _bilinear(img, r, c, order=1, prefilter=True):
+    return ndimage.map_coordinates(img, [np.atleast_1d(r), np.atleast_1d(c)], order=order, mode="nearest",
+                                   prefilter=prefilter)
 
 
 def _floor(zr, zs, pit):
@@ -222,10 +223,11 @@ def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
     # follow the ridge (the valley between two facets) to the corner: aim the ray at the
     # lowest point across it, 5 px before the coarse corner
     nrm = np.array([-e[1], e[0]])
+    zc = ndimage.spline_filter(zr, order=3, mode="nearest")       # cubic coefficients, once per corner
     for _ in range(2):
         tt = np.arange(-3.0, 3.01, 0.25)
         q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
-        pv = _bilinear(zr, q[:, 0], q[:, 1], order=3)
+        pv = _bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
         j = int(np.argmin(pv))
         if 0 < j < len(tt) - 1:
             den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
@@ -237,7 +239,7 @@ def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
     pts = rc0 + s[:, None] * e
     ny, nx = zr.shape
     inb = (pts[:, 0] >= 0) & (pts[:, 0] <= ny - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= nx - 1)
-    p = _bilinear(zr, pts[:, 0], pts[:, 1], order=3)
+    p = _bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
     # the straight part of the profile: clear of the noise and of the kink at the surface level
     use = inb & (p < -max(3 * noise, 1.5 * slope_floor)) & (s < length + 0.5) & np.isfinite(p)
     if use.sum() < 6:

@@ -56,9 +56,23 @@ def test_single_micrograph_against_truth(style, seed):
     imps, _bar = measure_micrograph(r.data, px)
     assert len(imps) == 1                                         # the imprint, nothing else
     m = imps[0]
-    assert abs(m.d_um - t["d_um"]) <= max(0.01 * t["d_um"], px)
-    assert np.all(_corner_errors_px(m.corners_um, t["corners_um"], px) <= 1.5)
+    # worst on these six seeds: mean diagonal 0.66 px, a corner 0.56 px (goals 1 % or 1 px, 1.5 px)
+    assert abs(m.d_um - t["d_um"]) <= 1.0 * px
+    assert np.all(_corner_errors_px(m.corners_um, t["corners_um"], px) <= 1.0)
     assert not m.cut_by_border
+
+
+@pytest.mark.parametrize("seed", [10, 11, 12])
+def test_small_om_imprint_not_short(seed):
+    """95 px imprints in OM renders (dark edge lines, halo): a wedge-sum model of the blurred corners
+    made them about 1.3 px short; worst now 0.39 px on the diagonal, 0.31 px on a corner."""
+    r = render_micrograph(seed, MicrographOptions(style="om", d_um=9.5))
+    t = r.truth["imprints"][0]
+    px = r.pixel_um
+    imps, _bar = measure_micrograph(r.data, px)
+    assert len(imps) == 1
+    assert abs(imps[0].d_um - t["d_um"]) <= 0.7 * px
+    assert np.all(_corner_errors_px(imps[0].corners_um, t["corners_um"], px) <= 0.6)
 
 
 def test_info_bar_found_and_left_out():

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from markcal.pipeline.config import read_array_spec
+from markcal.pipeline.config import _array_schema, load_toml, parse_config, read_array_spec
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, file_ext
 from markcal.stages import indent as ind
 from markcal.stages import indent_select as sel
@@ -123,7 +123,9 @@ def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m
     t0 = time.perf_counter()
     img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     try:
-        return _measure(img, spec, opt, say, t0)
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1):          # small matrices: one BLAS thread is fastest and never oversubscribes
+            return _measure(img, spec, opt, say, t0)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
 
@@ -329,8 +331,32 @@ def indents_options(o: dict) -> IndentsOptions:
                           channel=o["channel"] or None, load_mN=o["load_mN"] or None)
 
 
+def read_indents_spec(path) -> tuple:
+    """Read a spec for ``markcal indents --array``: an array spec, or only an ``[indenter]`` table.
+
+    Returns
+    -------
+    spec : ArraySpec or None
+        None when the file has no ``[array]`` table (single imprints: every imprint found is measured).
+    load_mN : float or None
+        ``[indenter] load_mN`` (the Vickers hardness needs it).
+    """
+    doc = load_toml(path, "array spec")
+    if "array" in doc:
+        spec = read_array_spec(path)
+        return spec, spec.load_mN
+    c = parse_config(doc, {"indenter": _array_schema()["indenter"]}, os.fspath(path))
+    return None, c["indenter"]["load_mN"]
+
+
+def with_spec_load(options: dict, load_mN) -> dict:
+    """Options with the spec's load where no load was given on the command line."""
+    return {**options, "load_mN": options.get("load_mN") or load_mN or 0.0}
+
+
 def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
-    spec = read_array_spec(spec_path) if spec_path else None
+    spec, load = read_indents_spec(spec_path) if spec_path else (None, None)
+    options = with_spec_load(options, load)
     res = run_indents([path], spec, indents_options(options), progress=progress)
     if res.failed:
         raise MarkcalError(res.failed[0][1], res.failed[0][0])

@@ -1,0 +1,126 @@
+"""Plausible mutants of the indents stages (issue 21): each must make the indents tests fail.
+
+``MUTANTS_INDENTS`` is a list of dicts {name, file, old, new, tests}: one text edit of a stage
+(``old`` occurs exactly once in ``file``) and the pytest selection that must catch it. They run
+through the harness of ``benchmarks/mutants.py`` (the mutated module is swapped in at import in a
+fresh pytest process; the source tree is never written)::
+
+    python benchmarks/mutants_indents.py [-k NAME] [--jobs 2]
+
+A mutant is killed when its tests fail (exit 1), survives when they pass.
+"""
+from __future__ import annotations
+
+import argparse
+import concurrent.futures as cf
+import os
+import sys
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import mutants as harness  # noqa: E402
+
+_MICRO = "tests/test_indent_micrograph.py::test_single_micrograph_against_truth"
+_SINGLE = "tests/test_indent_single.py"
+
+MUTANTS_INDENTS = [
+    {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
+        "name": "micrograph-inside-as-sum",
+        "file": "stages/indent_micrograph.py",
+        "old": "        w = w / (w.sum(axis=0) + 1e-12) * inside\n",
+        "new": "        inside = w.sum(axis=0)\n",
+        "tests": ["tests/test_indent_micrograph.py::test_small_om_imprint_not_short"],
+    },
+    {   # block centres of the coarse levels half a block off
+        "name": "micrograph-block-half-pixel",
+        "file": "stages/indent_micrograph.py",
+        "old": "X, Y = np.meshgrid(cols * f + (f - 1) / 2, rows * f + (f - 1) / 2)",
+        "new": "X, Y = np.meshgrid(cols * f + f / 2, rows * f + f / 2)",
+        "tests": [_MICRO],
+    },
+    {   # the dark edge lines left out of the model
+        "name": "micrograph-no-edge-lines",
+        "file": "stages/indent_micrograph.py",
+        "old": "extra = np.array([edge_line * out, edge_line * inside, glow, ridge, halo])",
+        "new": "extra = np.array([glow, ridge, halo])",
+        "tests": [_MICRO],
+    },
+    {   # the ridge-end correction moves the corner by delta * tan instead of delta / tan
+        "name": "micrograph-ridge-tan",
+        "file": "stages/indent_micrograph.py",
+        "old": "t_c = t_half + delta_px / np.tan(alpha / 2)",
+        "new": "t_c = t_half + delta_px * np.tan(alpha / 2) + 3.0",
+        "tests": [_MICRO, "tests/test_indent_micrograph.py::test_two_imprints_in_one_micrograph"],
+    },
+    {   # HV with the load in mN instead of N
+        "name": "single-hv-load-units",
+        "file": "stages/indent_single.py",
+        "old": "return indenter.hv_factor * (load_mN * 1e-3) / (d_mm * d_mm)",
+        "new": "return indenter.hv_factor * load_mN / (d_mm * d_mm)",
+        "tests": [_SINGLE + "::test_hardness_formula"],
+    },
+    {   # edge bow measured with the normal pointing inwards (sink-in reported as pile-up)
+        "name": "single-bow-sign",
+        "file": "stages/indent_single.py",
+        "old": "        if nrm @ (mid - [cx, cy]) < 0:\n            nrm = -nrm\n",
+        "new": "        if nrm @ (mid - [cx, cy]) > 0:\n            nrm = -nrm\n",
+        "tests": [_SINGLE + "::test_edge_bow_signs_against_truth"],
+    },
+    {   # a corner outside the field not flagged
+        "name": "single-border-not-flagged",
+        "file": "stages/indent_single.py",
+        "old": "    cut = bool(cut or outside)\n",
+        "new": "    cut = bool(outside)\n",
+        "tests": [_SINGLE + "::test_cut_by_border_flagged"],
+    },
+    {   # the corner refined on the ray ignores the straight-line zero crossing (coarse corner kept)
+        "name": "single-corner-not-refined",
+        "file": "stages/indent_single.py",
+        "old": "    s0 = -k[1] / k[0]\n",
+        "new": "    s0 = length - 1.0\n",
+        "tests": [_SINGLE + "::test_single_imprint_against_truth"],
+    },
+    {   # pile-up volume in µm² nm taken as µm³ (the 1e-3 dropped)
+        "name": "single-pileup-volume-units",
+        "file": "stages/indent_single.py",
+        "old": "vol = float(zr[outer].sum() * pixel_um * pixel_um * 1e-3)",
+        "new": "vol = float(zr[outer].sum() * pixel_um * pixel_um)",
+        "tests": [_SINGLE + "::test_single_imprint_against_truth"],
+    },
+]
+
+
+def _as_mutant(d: dict):
+    key = "indents:" + d["name"]
+    harness.TESTS[key] = list(d["tests"])
+    return harness.Mutant(d["name"], "indents", d["file"], d["old"], d["new"], key)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("-k", default="", help="only mutants whose name contains this")
+    ap.add_argument("--jobs", type=int, default=2, help="pytest processes at a time")
+    ap.add_argument("--timeout", type=float, default=600.0, help="seconds per mutant (a hang counts as killed)")
+    args = ap.parse_args(argv)
+    chosen = [_as_mutant(d) for d in MUTANTS_INDENTS if args.k in d["name"]]
+    for m in chosen:
+        harness.mutated_source(m)             # every edit applies once and compiles
+    t0 = time.perf_counter()
+    results = []
+    with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        futs = [pool.submit(harness.run_mutant, m, sys.executable, work, args.timeout) for m in chosen]
+        for f in cf.as_completed(futs):
+            m, status, dt, tail = f.result()
+            results.append((m, status))
+            print(f"{status:9s} {m.id:30s} {dt:6.1f} s  {tail}", flush=True)
+    killed = sum(s == "killed" for _m, s in results)
+    print(f"\nindents mutants: {len(results)}, killed {killed}, survived "
+          f"{sum(s == 'SURVIVED' for _m, s in results)}, errors {sum(s.startswith('error') for _m, s in results)} "
+          f"({time.perf_counter() - t0:.0f} s)")
+    return 0 if killed == len(results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
