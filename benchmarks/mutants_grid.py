@@ -11,7 +11,7 @@ Not listed, as equivalent: dropping ``- lam * w`` from the spline's affine fit
 component in the span of ``P`` and the least-squares affine part is the same (it survived, as it must).
 
 Measured (2-core machine shared with other sessions, load 12-15): the baseline passes in 23 s; every
-mutant is killed, each in 5-16 s (10 of 10). Against the grid tests as they were before (the whole
+mutant is killed, each in 4-16 s, 50-100 s in all (10 of 10). Against the grid tests as they were before (the whole
 file, slow tests included) 7 of 10 were killed: the BJJCZ i/j swap and the coupling and decentring
 swaps survived; the tests that now kill them are ``test_bjjcz_line_and_layout_detection`` (row and
 column of every line) and ``test_physical_model_holds_the_true_galvo``; the CV leak, the hull and the
