@@ -5,7 +5,11 @@ Each entry of ``MUTANTS_ORIENT`` is one fixed text edit a reviewer would plant i
 that must kill it. Runs through the harness of ``benchmarks/mutants.py`` (the mutated module is
 swapped in at import; the source tree is never written):
 
-    python benchmarks/mutants_orient.py [--jobs 2] [-k NAME]
+    python benchmarks/mutants_orient.py [--jobs 2] [-k NAME] [--no-baseline]
+
+Measured (2 jobs, load 15-18 on 2 cores): 8 of 8 killed; the baseline took 431 s and the mutants
+75-360 s each. ``orient-angle-diff-not-wrapped`` survived the first run and is killed since a hint
+across the 180 deg wrap was added to tests/test_orientation.py.
 """
 from __future__ import annotations
 
