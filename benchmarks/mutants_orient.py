@@ -5,7 +5,11 @@ Each entry of ``MUTANTS_ORIENT`` is one fixed text edit a reviewer would plant i
 that must kill it. Runs through the harness of ``benchmarks/mutants.py`` (the mutated module is
 swapped in at import; the source tree is never written):
 
-    python benchmarks/mutants_orient.py [--jobs 2] [-k NAME]
+    python benchmarks/mutants_orient.py [--jobs 2] [-k NAME] [--no-baseline]
+
+Measured (2 jobs, load 15-18 on 2 cores): 8 of 8 killed; the baseline took 431 s and the mutants
+75-360 s each. ``orient-angle-diff-not-wrapped`` survived the first run and is killed since a hint
+across the 180 deg wrap was added to tests/test_orientation.py.
 """
 from __future__ import annotations
 
@@ -55,23 +59,30 @@ def _mutant(d: dict) -> harness.Mutant:
     return harness.Mutant(d["name"], "orient", d["file"], d["old"], d["new"], d["tests"])
 
 
+def _baseline(timeout_s: float) -> None:
+    """The selection must pass with the unchanged modules loaded through the harness (a null mutant)."""
+    print("baseline: the selection passes without a mutant ...", flush=True)
+    with tempfile.TemporaryDirectory() as work:
+        null = harness.Mutant("null-orient", "none", "stages/orientation.py", "", "", "orient", count=0)
+        _, status, dt, tail = harness.run_mutant(null, sys.executable, work, timeout_s)
+        print(f"baseline {dt:6.1f} s  {tail}", flush=True)
+        if status != "SURVIVED":
+            raise SystemExit(f"baseline: the tests fail without a mutant ({status}): {tail}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("-k", default="", help="only mutants whose name contains this")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--timeout", type=float, default=600.0)
+    ap.add_argument("--no-baseline", action="store_true", help="skip the unmutated run of the selection")
     args = ap.parse_args(argv)
     harness.TESTS.update(TESTS)
     chosen = [_mutant(d) for d in MUTANTS_ORIENT if args.k in d["name"]]
     for m in chosen:
         harness.mutated_source(m)            # every edit applies and compiles before anything runs
-    print("baseline: the selection passes without a mutant ...", flush=True)
-    with tempfile.TemporaryDirectory() as work:
-        null = harness.Mutant("null-orient", "none", "stages/orientation.py", "", "", "orient", count=0)
-        _, status, dt, tail = harness.run_mutant(null, sys.executable, work, args.timeout)
-        print(f"baseline {dt:6.1f} s  {tail}", flush=True)
-        if status != "SURVIVED":
-            raise SystemExit(f"baseline: the tests fail without a mutant ({status}): {tail}")
+    if not args.no_baseline:
+        _baseline(args.timeout)
     t0 = time.perf_counter()
     killed = 0
     with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, args.jobs)) as pool:

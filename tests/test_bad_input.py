@@ -117,7 +117,7 @@ def test_few_missing_fiducials_are_not_an_error(tmp_path, plate):
     import json
     s = json.loads((out / "summary.json").read_text())
     assert p.returncode == (4 if s["rms_mm"] > 0.05 else 0), p.stderr      # 4: ran, out of the default tolerance
-    assert s["n_detected"] == 46 and s["missing_ids"] == r.truth["hidden_ids"]
+    assert s["n_detected"] == 45 and s["missing_ids"] == r.truth["hidden_ids"]      # 49 - the mark - 3 hidden
 
 
 def test_readers_agree(tmp_path, small_render):

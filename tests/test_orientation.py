@@ -57,7 +57,7 @@ def test_rotation_hint_picks_the_quarter_turn(tmp_path):
     assert abs(res.summary["in_plane_rotation_deg"]) == pytest.approx(180.0, abs=0.2)
 
 
-@pytest.mark.parametrize("rot,hint", [(40.0, 0.0), (-130.0, -90.0)])
+@pytest.mark.parametrize("rot,hint", [(40.0, 0.0), (-130.0, -90.0), (175.0, -165.0)])    # the last wraps at 180
 def test_hint_takes_the_plate_within_44_deg_of_it(tmp_path, rot, hint):
     r, res = _scan(tmp_path, PLAIN, 39, rot, rotation_hint_deg=hint)
     assert _index_error_mm(res, r).max() <= RIGHT_MM
