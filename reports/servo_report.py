@@ -372,8 +372,10 @@ def _trace_parts(res):
                                         ("overshoot", "overshoot", 1.0, "µm"), ("overshoot", "overshoot", 1.0, "%"),
                                         ("steady_state_error", "steady-state error", 1.0, "µm")):
             u = "s" if unit == "ms" else ("pct" if unit == "%" else "um")
-            stats.append([f"{label} ({unit})"] + [num(s[f"{key}_{st}_{u}"] * scale, "") for st in
-                                                  ("mean", "std", "median", "min", "max")] + [str(s[f"{key}_n"])])
+            cells = [num(s[f"{key}_{st}_{u}"] * scale, "") for st in ("mean", "std", "median", "min", "max")]
+            if all(c == "–" for c in cells):           # no move reached it: say so instead of a row of "–"
+                cells = ["none within the log"] + [""] * 4
+            stats.append([f"{label} ({unit})"] + cells + [str(s[f"{key}_n"])])
         parts.append("<h2>Statistics over the moves</h2>" + table(["metric", "mean", "STD", "median", "min", "max",
                                                                    "moves"], stats))
         parts.append(_overlay(res))
