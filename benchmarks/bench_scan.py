@@ -83,7 +83,11 @@ def main():
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
           f"Python {platform.python_version()}")
     tmp = tempfile.mkdtemp(prefix="markcal-bench-scan-")
-    ref_path = _reference_tree(args.ref, tmp)
+    try:
+        ref_path = _reference_tree(args.ref, tmp)
+    except (subprocess.CalledProcessError, OSError) as exc:       # not a git checkout, or no such commit
+        print(f"reference {args.ref} not available ({exc}); timing this tree alone")
+        ref_path = None
     if args.cloud:
         cloud, plate = args.cloud, args.plate
     else:
@@ -99,6 +103,8 @@ def main():
     for d in ("pipeline", "stages", "fixtures", "reports"):
         shutil.copytree(os.path.join(REPO, d), os.path.join(here, d), ignore=shutil.ignore_patterns("__pycache__"))
     codes = {f"ref {args.ref}": ref_path, "this tree": os.path.dirname(here)}
+    if ref_path is None:
+        del codes[f"ref {args.ref}"]
     times = {k: [] for k in codes}
     rbf_times = {k: [] for k in codes}
     loads = []
@@ -109,7 +115,7 @@ def main():
             wall, cpu, _ = _run(["-m", "markcal.pipeline.cli", "scan", cloud, "--plate", plate, "--out", out,
                                  "--quiet"], path, ok=(0, 4))      # 4: out of tolerance, outputs written
             times[name].append((wall, cpu))
-            fid = os.path.join(tmp, "out_ref0", "fiducials.csv")
+            fid = os.path.join(tmp, f"out_{list(codes)[0].split()[0]}0", "fiducials.csv")
             _, _, line = _run(["-c", RBF_SNIPPET, fid], path)
             w, c, *sel = line.split()
             rbf_times[name].append((float(w), float(c), sel))
@@ -117,8 +123,13 @@ def main():
                   f"RBF selection + training wall {float(w):5.2f} s, CPU {float(c):5.2f} s "
                   f"(spread {sel[0]} mm, goal {sel[1]} mm2, {sel[2]} neurons); load {loads[-1]:.1f}", flush=True)
     med = statistics.median
-    ref, new = list(codes)
     print(f"\nload average 1 min during the runs: {min(loads):.1f}-{max(loads):.1f} ({os.cpu_count()} cores)")
+    if len(codes) == 1:
+        for label, t in (("whole command", times), ("RBF selection + training", rbf_times)):
+            print(f"{label:>25}: wall median {med([x[0] for x in t['this tree']]):6.2f} s, "
+                  f"CPU median {med([x[1] for x in t['this tree']]):6.2f} s")
+        return
+    ref, new = list(codes)
     for label, t in (("whole command", times), ("RBF selection + training", rbf_times)):
         for k, name in ((0, "wall"), (1, "CPU")):
             a, b = med([x[k] for x in t[ref]]), med([x[k] for x in t[new]])
