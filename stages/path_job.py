@@ -15,7 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import MarkcalError
-from .limits import max_abs_for
 
 __all__ = ["KINDS", "Stroke", "Job", "Timing", "Tour", "make_job", "endpoints", "tour_points",
            "jump_lengths_mm", "jump_cost", "tour_cost", "tour_stats", "duplicate_groups", "input_tour"]
@@ -140,6 +139,11 @@ class Tour:
 
 # ----------------------------------------------------------------------------- building
 
+#: largest coordinate of a job built in code (TSPLIB boards use unit-less coordinates up to ~1e5); the file
+#: readers hold job files to the physical ±10 m of :mod:`markcal.stages.limits`
+MAX_ABS_MM = 1e7
+
+
 def check_number_leaves(xy, what: str, source=None) -> None:
     """Refuse coordinates given as strings, booleans or anything but JSON numbers (nested lists)."""
     stack = [xy]
@@ -177,9 +181,9 @@ def make_job(strokes, source=None) -> Job:
                                source) from None
         if not np.all(np.isfinite(p)):
             raise MarkcalError(f"stroke {i} ({kind}): NaN or infinite coordinate", source)
-        if np.abs(p).max(initial=0.0) > max_abs_for("xy_mm"):
-            raise MarkcalError(f"stroke {i} ({kind}): coordinate {np.abs(p).max():g} mm beyond the physical "
-                               f"limit ±{max_abs_for('xy_mm'):g} mm", source)
+        if np.abs(p).max(initial=0.0) > MAX_ABS_MM:
+            raise MarkcalError(f"stroke {i} ({kind}): coordinate {np.abs(p).max():g} mm beyond ±{MAX_ABS_MM:g} mm",
+                               source)
         if kind == "contour" and len(p) > 1 and np.array_equal(p[0], p[-1]):
             p = p[:-1]                              # closing vertex written out
         if kind == "point" and len(p) != 1:
