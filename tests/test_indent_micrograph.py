@@ -127,9 +127,9 @@ def test_real_sem_vickers_imprint(tmp_path):
     if not path.is_file():
         pytest.skip(f"real file {SEM_FILE} not present (../shared/realdata)")
     out = str(tmp_path / "sem")
-    t0 = time.perf_counter()
+    t0 = time.process_time()                  # CPU: the wall clock follows the other jobs' load
     assert main(["indents", str(path), "--out", out, "--quiet"]) in (0, 4)
-    elapsed = time.perf_counter() - t0
+    elapsed = time.process_time() - t0
     s = json.load(open(os.path.join(out, "summary.json")))
     assert s["n_imprints"] == 1
     rows = open(os.path.join(out, "indents.csv")).read().splitlines()
@@ -140,4 +140,4 @@ def test_real_sem_vickers_imprint(tmp_path):
     assert abs(d1 / d2 - 1) <= 0.10
     assert row["cut_by_border"] == "0"
     assert abs(s["mean_d_um"] - 19.09) <= 0.02 * 19.09             # the manual reading above, 2 %
-    assert elapsed < 15.0, f"SEM image took {elapsed:.1f} s"
+    assert elapsed < 15.0, f"SEM image took {elapsed:.1f} s CPU"
