@@ -105,6 +105,17 @@ def test_cli_measures_a_rendered_micrograph(tmp_path):
     assert "each corner magnified" in html
 
 
+def test_cli_render_single_sem_and_measure(tmp_path):
+    """``markcal render om --single --style sem`` writes image.tif + truth.json that the flow measures."""
+    rdir, out = str(tmp_path / "r"), str(tmp_path / "o")
+    assert main(["render", "om", "--single", "--style", "sem", "--seed", "1", "--out", rdir, "--quiet"]) == 0
+    assert main(["indents", os.path.join(rdir, "image.tif"), "--out", out, "--quiet", "--no-report"]) in (0, 4)
+    t = json.load(open(os.path.join(rdir, "truth.json")))["imprints"][0]
+    s = json.load(open(os.path.join(out, "summary.json")))
+    assert s["n_imprints"] == 1
+    assert abs(s["mean_d_um"] - t["d_um"]) <= 0.1                 # 1 px; worst on the test seeds 0.66 px
+
+
 def test_micrograph_without_imprint_is_refused(tmp_path, capsys):
     """Texture and noise only: one line, exit 1, no summary.json."""
     r = render_micrograph(1, MicrographOptions(style="om"))
