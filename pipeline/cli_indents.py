@@ -69,12 +69,38 @@ def cmd_render_om(args) -> int:
     from markcal.fixtures.indent_maps import OmOptions, render_om, save_indent_render
 
     say = progress(args.quiet)
+    if args.single:
+        return _render_micrograph(args, say)
     o = OmOptions(rows=args.rows, cols=args.cols, pitch_um=args.pitch_um, nominal_um=args.nominal_um,
                   size_px=args.size_px, pixel_um=args.pixel_size_um, bits=args.bits)
     say(f"rendering OM micrograph, seed {args.seed}")
     save_indent_render(args.out, render_om(args.seed, o), "image")
     print(os.path.abspath(args.out))
     return 0
+
+
+def _render_micrograph(args, say) -> int:
+    """Single imprints in an OM or SEM micrograph: image.tif (16-bit, pixel size in the tags), truth.json."""
+    from markcal.fixtures.indent_maps import tiff_bytes
+    from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
+    from markcal.reports.files import atomic_write_bytes, write_json
+    o = MicrographOptions(style=args.style, pixel_um=args.pixel_um, n_imprints=args.n_imprints,
+                          bar_rows=40 if args.style == "sem" else 0)
+    say(f"rendering a {args.style.upper()} micrograph of {args.n_imprints} single imprint(s), seed {args.seed}")
+    r = render_micrograph(args.seed, o)
+    os.makedirs(args.out, exist_ok=True)
+    atomic_write_bytes(os.path.join(args.out, "image.tif"), tiff_bytes(r.data, r.pixel_um))
+    write_json(os.path.join(args.out, "truth.json"), r.truth)
+    print(os.path.abspath(args.out))
+    return 0
+
+
+def _count(v):
+    import argparse
+    n = int(v)
+    if not 1 <= n <= 4:
+        raise argparse.ArgumentTypeError(f"must be 1 to 4, got {v}")
+    return n
 
 
 def _positive(v):
@@ -128,5 +154,10 @@ def register(sub, render_sub) -> None:
             r.add_argument("--pixel-size-um", type=_positive, default=0.1, help="pixel size of the micrograph, µm")
             add_alias(r, "--pixel-um", "--pixel-size-um", type=_positive)
             r.add_argument("--bits", type=int, choices=[8, 16], default=8)
+            r.add_argument("--single", action="store_true",
+                           help="single Vickers imprints (facet shading, edge lines, halo; SEM: glow, info bar) "
+                                "in a 360 x 480 micrograph + truth")
+            r.add_argument("--style", choices=["om", "sem"], default="om", help="--single: light or electron")
+            r.add_argument("--n-imprints", type=_count, default=1, help="--single: imprints in the field (1-4)")
         r.add_argument("--quiet", action="store_true")
         r.set_defaults(func=fn)

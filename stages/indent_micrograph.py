@@ -11,8 +11,9 @@ facet edges end. The measurement:
   moment, corners as the outline's extreme points along the diagonals;
 - refinement, coarse to fine: a quadrilateral (four corners) with an apex, its four
   triangular facets and the surroundings each given a linear brightness (fitted in closed
-  form for every trial geometry: variable projection), edges softened by a fraction of a
-  pixel; the ten coordinates by robust least squares. On the finer levels only a band around
+  form for every trial geometry: variable projection), edges softened by about a pixel's blur
+  (the inside is the product of the four soft half-planes, so a blurred corner keeps a quarter
+  of the contrast at its tip); the ten coordinates by robust least squares. On the finer levels only a band around
   the edges and ridges is used.
 
 Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down).
@@ -281,6 +282,11 @@ def _lm(fun, p, step, n_iter, f_scale=3.0):
     return p
 
 
+def _soft_cost(r, f_scale=3.0):
+    """Soft-L1 cost of residuals (noise units), as :func:`_lm` minimises it (up to a constant)."""
+    return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2)))
+
+
 def _refine(img, corners, apex, d_px):
     """Coarse-to-fine quadrilateral fit; returns corners (4, 2), apex (2,), model of the last level."""
     p = np.concatenate([apex, corners.ravel()])
@@ -305,7 +311,7 @@ def _refine(img, corners, apex, d_px):
             for shrink in (1.0, 0.85, 0.7, 0.55):
                 q = np.concatenate([p[:2], (p[:2] + shrink * (p[2:].reshape(4, 2) - p[:2])).ravel()])
                 q = _lm(model.residual, q, 0.05 * f, 6)
-                c = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                c = _soft_cost(model.residual(q))
                 if best is None or c < best[0]:
                     best = (c, q)
             p = _lm(model.residual, best[1], 0.05 * f, 20)
@@ -320,7 +326,7 @@ def _refine(img, corners, apex, d_px):
                 v = c - p[:2]
                 q = np.concatenate([p[:2], (c - pull_px * v / np.hypot(*v.T)[:, None]).ravel()])
                 q = _lm(model.residual, q, 0.05 * f, 8)
-                cost = float(np.sum(np.sqrt(1 + (model.residual(q) / 3.0) ** 2)))
+                cost = _soft_cost(model.residual(q))
                 if best is None or cost < best[0]:
                     best = (cost, q)
             p = best[1]
