@@ -176,3 +176,56 @@ def test_tsplib_reader_rejects_other_formats(tmp_path):
     f.write_text("NAME: x\nDIMENSION: 3\nNODE_COORD_SECTION\n1 0 0\n2 1 1\nEOF\n")
     with pytest.raises(MarkcalError, match="coordinates"):
         read_tsplib(f)
+
+
+def _point_tour_gains(p, order):
+    """Best 2-opt and Or-opt (runs of 1-3 points, either way round) gains over all moves, brute force."""
+    q = p[order]
+    n = len(q)
+    d = np.hypot(*(q[:, None] - q[None]).transpose(2, 0, 1))
+    nx = np.arange(1, n + 1) % n
+    best2 = max(d[i, nx[i]] + d[j, nx[j]] - d[i, j] - d[nx[i], nx[j]]
+                for i in range(n) for j in range(i + 2, n) if not (i == 0 and j == n - 1))
+    best_or = 0.0
+    for i in range(n):
+        for L in (1, 2, 3):
+            s, e = i, (i + L - 1) % n
+            pv, nt = (i - 1) % n, (i + L) % n
+            out = d[pv, s] + d[e, nt] - d[pv, nt]
+            inside = {(i + t) % n for t in range(L)}
+            for j in range(n):
+                if j in inside or j == pv:
+                    continue
+                jn = nx[j]
+                if jn in inside:
+                    continue
+                ins = min(d[j, s] + d[e, jn], d[j, e] + d[s, jn]) - d[j, jn]
+                best_or = max(best_or, out - ins)
+    return best2, best_or
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_kicks_off_full_candidates_gives_a_2opt_and_oropt_local_optimum(seed):
+    """With every city a candidate and no kicks, no 2-opt or Or-opt move improves the tour."""
+    p = np.random.default_rng([seed, 41]).random((60, 2)) * 100
+    job = make_job(("point", q) for q in p)
+    start = nearest_neighbour_tour(job)
+    t = local_search(job, start, TM, LocalSearchOptions(neighbours=118, kicks_per_stroke=0, seed=seed))
+    check_tour(job, t)
+    best2, best_or = _point_tour_gains(p, t.order)
+    assert best2 <= 1e-9 and best_or <= 1e-9
+    assert tour_cost(job, t, TM) < 0.90 * tour_cost(job, start, TM)     # measured 0.81-0.83
+
+
+def test_oropt_alone_puts_a_misplaced_point_back():
+    """Kicks off, no Lin-Kernighan: a circle with one point moved across is mended by Or-opt."""
+    ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    p = np.c_[np.cos(ang), np.sin(ang)] * 50
+    order = [k for k in range(40) if k != 5]
+    order.insert(24, 5)
+    job = make_job(("point", q) for q in p)
+    start = Tour(np.array(order), np.zeros(40, bool), np.zeros(40, np.int64))
+    t = local_search(job, start, TM, LocalSearchOptions(kicks_per_stroke=0, lk_depth=1))
+    optimum = 40 * 2 * 50 * np.sin(np.pi / 40)
+    assert tour_cost(job, start, TM) > 1.5 * optimum
+    assert tour_cost(job, t, TM) == pytest.approx(optimum, rel=1e-9)
