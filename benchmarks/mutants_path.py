@@ -2,7 +2,11 @@
 
 Each entry: ``name``, ``file`` (relative to the repository), ``old`` text (occurs once), ``new``
 text, ``tests`` (pytest arguments that must fail with the edit applied). Checked by hand in a
-scratch copy of the repository (each edit applied, the tests run): all killed.
+scratch copy of the repository (each edit applied, the tests run; 150 s limit). Killed by a failing
+test: candidates-truncated, alpha-beta-dropped, entry-keeps-worse. Killed by the time limit only (the
+search never ends: a "gain" that lengthens the tour is found again and again): 2opt-gain-sign,
+oropt-gain-sign, lk-close-sign. Survives: oropt-single-strokes-only (2-opt and the LK step make the
+same repairs on these tests). kick-kept-when-longer: see the report.
 Note for a harness that swaps the module in at import: these stages are numba ``cache=True``
 kernels; the mutated source must not pick up the unmutated on-disk cache (run with
 ``NUMBA_DISABLE_CACHE``-free fresh cache dir, e.g. ``NUMBA_CACHE_DIR`` set to a temporary folder).

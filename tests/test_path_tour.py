@@ -217,12 +217,13 @@ def test_kicks_off_full_candidates_gives_a_2opt_and_oropt_local_optimum(seed):
     assert tour_cost(job, t, TM) < 0.90 * tour_cost(job, start, TM)     # measured 0.81-0.83
 
 
-def test_oropt_alone_puts_a_misplaced_point_back():
-    """Kicks off, no Lin-Kernighan: a circle with one point moved across is mended by Or-opt."""
+@pytest.mark.parametrize("run", [[5], [5, 6, 7]])
+def test_no_kicks_no_lk_puts_a_misplaced_run_back(run):
+    """Kicks off, no Lin-Kernighan: a circle with a run of points moved across is mended (2-opt, Or-opt)."""
     ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
     p = np.c_[np.cos(ang), np.sin(ang)] * 50
-    order = [k for k in range(40) if k != 5]
-    order.insert(24, 5)
+    order = [k for k in range(40) if k not in run]
+    order[24:24] = run
     job = make_job(("point", q) for q in p)
     start = Tour(np.array(order), np.zeros(40, bool), np.zeros(40, np.int64))
     t = local_search(job, start, TM, LocalSearchOptions(kicks_per_stroke=0, lk_depth=1))
