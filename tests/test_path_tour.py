@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree, shortest_path
 from markcal.fixtures.tsp_boards import clustered_points, drill_board, read_tsplib, tsplib_length
 from markcal.stages.errors import MarkcalError
 from markcal.stages.path_job import Timing, Tour, check_tour, make_job, tour_cost
-from markcal.stages.path_tour import LocalSearchOptions, local_search, nearest_neighbour_tour
+from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, nearest_neighbour_tour
 from markcal.stages.path_tour_cand import alpha_candidates
 
 TM = Timing()
@@ -230,3 +230,13 @@ def test_no_kicks_no_lk_puts_a_misplaced_run_back(run):
     optimum = 40 * 2 * 50 * np.sin(np.pi / 40)
     assert tour_cost(job, start, TM) > 1.5 * optimum
     assert tour_cost(job, t, TM) == pytest.approx(optimum, rel=1e-9)
+
+
+def test_best_entries_moves_a_contour_entry_to_the_near_corner():
+    """Two points and a unit square entered at its far corner: re-entered at the corner facing them."""
+    sq = np.array([(11, 1), (10, 1), (10, 0), (11, 0)], float)      # entry 0 is the far top corner
+    job = make_job([("point", [0.0, 0.0]), ("point", [0.0, 0.5]), ("contour", sq)])
+    t = Tour(np.array([0, 2, 1]), np.zeros(3, bool), np.zeros(3, np.int64))
+    better = best_entries(job, t, TM)
+    assert better.entry[1] == 2                                       # (10, 0)
+    assert tour_cost(job, better, TM) == pytest.approx(10.0 + np.hypot(10.0, 0.5) + 0.5, abs=1e-12)
