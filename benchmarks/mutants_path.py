@@ -2,15 +2,17 @@
 
 Each entry: ``name``, ``file`` (relative to the repository), ``old`` text (occurs once), ``new``
 text, ``tests`` (pytest arguments that must fail with the edit applied). Checked by hand in a
-scratch copy of the repository (each edit applied, the tests run; 150 s limit). Killed by a failing
-test: candidates-truncated, alpha-beta-dropped, kick-kept-when-longer, entry-keeps-worse (by
-test_best_entries_moves_a_contour_entry_to_the_near_corner, added after it first survived). Killed by the time limit only (the
-search never ends: a "gain" that lengthens the tour is found again and again): 2opt-gain-sign,
-oropt-gain-sign, lk-close-sign. Survives: oropt-single-strokes-only (2-opt and the LK step make the
-same repairs on these tests). kick-kept-when-longer: see the report.
-Note for a harness that swaps the module in at import: these stages are numba ``cache=True``
-kernels; the mutated source must not pick up the unmutated on-disk cache (run with
-``NUMBA_DISABLE_CACHE``-free fresh cache dir, e.g. ``NUMBA_CACHE_DIR`` set to a temporary folder).
+scratch copy of the repository (each edit applied, the tests run, 150 s limit):
+
+- killed by a failing test: candidates-truncated, alpha-beta-dropped, kick-kept-when-longer,
+  entry-keeps-worse (by test_best_entries_moves_a_contour_entry_to_the_near_corner, added after
+  it first survived);
+- killed by the time limit only (the search never ends: a "gain" that lengthens the tour is
+  found again and again): 2opt-gain-sign, oropt-gain-sign, lk-close-sign;
+- survives: oropt-single-strokes-only (2-opt and the LK step make the same repairs on these tests).
+
+A harness that swaps a module in at import should give numba a fresh cache folder
+(``NUMBA_CACHE_DIR``): these kernels are ``cache=True``.
 """
 
 _T = ["tests/test_path_tour.py", "tests/test_path.py", "-k", "not cli and not bad_input"]
