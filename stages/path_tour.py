@@ -15,8 +15,8 @@ clusters, which nearest neighbours do not), 2-opt, Or-opt (runs of 1-3
 strokes, either way round) and a variable-depth Lin-Kernighan step, with
 don't-look bits (a queue of active cities); then an iterated local search:
 double-bridge kicks (two neighbouring runs of strokes swapped, as in Chained
-Lin-Kernighan) each repaired by the same local search and kept unless the tour
-got longer.
+Lin-Kernighan, cut at long jumps) each repaired by the same local search and
+kept unless the tour got longer.
 Closed contours are re-entered at their best vertex between rounds. The
 number of kicks is fixed by the options, never by a clock, so a seed gives
 the same tour on any machine.
@@ -44,9 +44,11 @@ class LocalSearchOptions:
     alpha-nearest points), alpha-nearness up to ``alpha_max_cities`` cities (O(N^2) time), nearest
     cities above. ``lk_depth``: the longest Lin-Kernighan chain (1: 2-opt and Or-opt only).
     ``kicks_per_stroke`` x n kicks (at least ``min_kicks``, at most ``max_kicks``) of the iterated
-    local search; each swaps two neighbouring runs of 1..``max_kick_strokes`` strokes (capped at
-    half the tour) and shuffles ``shuffle_strokes`` neighbouring strokes elsewhere (order and
-    directions; 0: no shuffle). ``lk_breadth``: alternatives tried at the first two levels of a chain.
+    local search; each swaps two neighbouring runs of strokes cut at jumps that are each the
+    longest of ``kick_tournament`` random jumps (0: runs of 1..``max_kick_strokes`` strokes from a
+    random cut, capped at half the tour) and shuffles ``shuffle_strokes`` neighbouring strokes
+    elsewhere (order and directions; 0: no shuffle). ``lk_breadth``: alternatives tried at the
+    first two levels of a chain.
     """
 
     neighbours: int = 10
@@ -58,6 +60,7 @@ class LocalSearchOptions:
     max_kicks: int = 10_000
     max_kick_strokes: int = 1_000_000
     shuffle_strokes: int = 8
+    kick_tournament: int = 4
     entry_rounds: int = 3
     seed: int = 0
 
@@ -267,7 +270,8 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
         cities = cities.copy()
         depth = max(1, opt.lk_depth)
         optimise(np.ascontiguousarray(xy), cities, neigh, a_, b_, n_kicks // rounds, int(rng.integers(2**31)),
-                 opt.max_kick_strokes, opt.shuffle_strokes, 3, lk_work(depth), depth, *opt.lk_breadth)
+                 opt.max_kick_strokes, opt.shuffle_strokes, 3, lk_work(depth), depth, *opt.lk_breadth,
+                 opt.kick_tournament)
         entry_of = {int(s): int(e) for s, e in zip(cur.order, cur.entry)}
         new = best_entries(job, _from_cities(job, cities, entry_of), timing, rounds=opt.entry_rounds)
         if tour_cost(job, new, timing) <= tour_cost(job, cur, timing) + 1e-12:

@@ -16,7 +16,7 @@ from scipy.sparse.csgraph import minimum_spanning_tree, shortest_path
 from markcal.fixtures.tsp_boards import clustered_points, drill_board, read_tsplib, tsplib_length
 from markcal.stages.errors import MarkcalError
 from markcal.stages.path_job import Timing, Tour, check_tour, make_job, tour_cost
-from markcal.stages.path_tour import LocalSearchOptions, local_search, nearest_neighbour_tour
+from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, nearest_neighbour_tour
 from markcal.stages.path_tour_cand import alpha_candidates
 
 TM = Timing()
@@ -176,3 +176,67 @@ def test_tsplib_reader_rejects_other_formats(tmp_path):
     f.write_text("NAME: x\nDIMENSION: 3\nNODE_COORD_SECTION\n1 0 0\n2 1 1\nEOF\n")
     with pytest.raises(MarkcalError, match="coordinates"):
         read_tsplib(f)
+
+
+def _point_tour_gains(p, order):
+    """Best 2-opt and Or-opt (runs of 1-3 points, either way round) gains over all moves, brute force."""
+    q = p[order]
+    n = len(q)
+    d = np.hypot(*(q[:, None] - q[None]).transpose(2, 0, 1))
+    nx = np.arange(1, n + 1) % n
+    best2 = max(d[i, nx[i]] + d[j, nx[j]] - d[i, j] - d[nx[i], nx[j]]
+                for i in range(n) for j in range(i + 2, n) if not (i == 0 and j == n - 1))
+    best_or = 0.0
+    for i in range(n):
+        for L in (1, 2, 3):
+            s, e = i, (i + L - 1) % n
+            pv, nt = (i - 1) % n, (i + L) % n
+            out = d[pv, s] + d[e, nt] - d[pv, nt]
+            inside = {(i + t) % n for t in range(L)}
+            for j in range(n):
+                if j in inside or j == pv:
+                    continue
+                jn = nx[j]
+                if jn in inside:
+                    continue
+                ins = min(d[j, s] + d[e, jn], d[j, e] + d[s, jn]) - d[j, jn]
+                best_or = max(best_or, out - ins)
+    return best2, best_or
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_kicks_off_full_candidates_gives_a_2opt_and_oropt_local_optimum(seed):
+    """With every city a candidate and no kicks, no 2-opt or Or-opt move improves the tour."""
+    p = np.random.default_rng([seed, 41]).random((60, 2)) * 100
+    job = make_job(("point", q) for q in p)
+    start = nearest_neighbour_tour(job)
+    t = local_search(job, start, TM, LocalSearchOptions(neighbours=118, kicks_per_stroke=0, seed=seed))
+    check_tour(job, t)
+    best2, best_or = _point_tour_gains(p, t.order)
+    assert best2 <= 1e-9 and best_or <= 1e-9
+    assert tour_cost(job, t, TM) < 0.90 * tour_cost(job, start, TM)     # measured 0.81-0.83
+
+
+@pytest.mark.parametrize("run", [[5], [5, 6, 7]])
+def test_no_kicks_no_lk_puts_a_misplaced_run_back(run):
+    """Kicks off, no Lin-Kernighan: a circle with a run of points moved across is mended (2-opt, Or-opt)."""
+    ang = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    p = np.c_[np.cos(ang), np.sin(ang)] * 50
+    order = [k for k in range(40) if k not in run]
+    order[24:24] = run
+    job = make_job(("point", q) for q in p)
+    start = Tour(np.array(order), np.zeros(40, bool), np.zeros(40, np.int64))
+    t = local_search(job, start, TM, LocalSearchOptions(kicks_per_stroke=0, lk_depth=1))
+    optimum = 40 * 2 * 50 * np.sin(np.pi / 40)
+    assert tour_cost(job, start, TM) > 1.5 * optimum
+    assert tour_cost(job, t, TM) == pytest.approx(optimum, rel=1e-9)
+
+
+def test_best_entries_moves_a_contour_entry_to_the_near_corner():
+    """Two points and a unit square entered at its far corner: re-entered at the corner facing them."""
+    sq = np.array([(11, 1), (10, 1), (10, 0), (11, 0)], float)      # entry 0 is the far top corner
+    job = make_job([("point", [0.0, 0.0]), ("point", [0.0, 0.5]), ("contour", sq)])
+    t = Tour(np.array([0, 2, 1]), np.zeros(3, bool), np.zeros(3, np.int64))
+    better = best_entries(job, t, TM)
+    assert better.entry[1] == 2                                       # (10, 0)
+    assert tour_cost(job, better, TM) == pytest.approx(10.0 + np.hypot(10.0, 0.5) + 0.5, abs=1e-12)
