@@ -24,7 +24,9 @@ FACT_LABELS = {"units_per_mm": "scale (galvo units per mm)",
                "extrapolated_nodes": "nodes outside the measured plate (value at its nearest edge)",
                "max_entry_units": "largest entry (galvo units)",
                "interpolation_error_units": "interpolation error at the fiducials (galvo units)",
-               "bits_per_mm": "scale (bits per mm)", "grid": "grid points", "filled_points": "points filled from the model",
+               "bits_per_mm": "scale (bits per mm)", "grid": "grid points",
+               "filled_points": "undetected marks filled from the model",
+               "unmarked_sites": "unmarked sites (orientation mark) filled from the model",
                "nodes": "nodes", "step_mm": "node step (mm)", "max_correction_um": "largest correction (µm)"}
 
 

@@ -26,7 +26,7 @@ def test_ring_centres_sub_pixel(small_render):
     got = from_plane(fit.uv_mm[fit.ok], plane)
     t = r.truth["fiducials"]
     true = np.column_stack([t["x_scanner_mm"], t["y_scanner_mm"], t["z_scanner_mm"]])
-    visible = np.setdiff1d(np.arange(len(true)), r.truth["hidden_ids"])
+    visible = np.setdiff1d(r.spec.marked_ids, r.truth["hidden_ids"])     # the orientation mark's site is bare
     d, j = (lambda a: (a.min(1), a.argmin(1)))(np.linalg.norm(got[:, None] - true[None, visible], axis=2))
     assert len(set(j)) == len(visible) == fit.ok.sum()       # every visible ring once, nothing else
     assert np.sqrt(np.mean(d ** 2)) <= CENTRE_RMS_MM

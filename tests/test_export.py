@@ -125,6 +125,7 @@ def test_correxion_round_trip(scan_dir, small_result):
             export_table("correxion", scan_dir, lens_mm=LENS_MM)
     data, facts = export_table("correxion", scan_dir, lens_mm=LENS_MM, fill_missing=True)
     assert facts["filled_points"] == missing
+    assert facts["unmarked_sites"] == 49 - len(small_result.spec.marked_ids)    # the orientation mark's site
     d = fmt.decode_correxion(data.decode())
     assert d["bits_per_mm"] == pytest.approx(2 ** 20 / LENS_MM) and not d["rtc4"]
     src = load_scan_source(scan_dir)

@@ -32,6 +32,7 @@ class ScanSource:
     region_mm: tuple
     fiducials: dict
     kind: str
+    n_not_detected: int | None = None      # marks the result says were not found (None: not recorded)
 
     def offset_mm(self, xy_mm):
         """Command offset (mm) at wanted positions (n, 2)."""
@@ -90,7 +91,9 @@ def load_scan_source(folder) -> ScanSource:
         summary = json.load(fh)
     region = region or (float(f["x_nom_mm"].min()), float(f["x_nom_mm"].max()),
                         float(f["y_nom_mm"].min()), float(f["y_nom_mm"].max()))
-    return ScanSource(folder, model, region, f, summary.get("kind", "calibration"))
+    missing = summary.get("missing_ids")
+    return ScanSource(folder, model, region, f, summary.get("kind", "calibration"),
+                      len(missing) if isinstance(missing, list) else None)
 
 
 def load_stage_source(folder) -> StageSource:
@@ -181,9 +184,11 @@ def _correxion(src: ScanSource, lens_mm: float, rtc4: bool, fill_missing: bool) 
     iy = np.rint((f["y_nom_mm"] - y_nodes[0]) / pitch_y).astype(int)
     meas[iy, ix, 0], meas[iy, ix, 1] = f["x_meas_mm"], f["y_meas_mm"]
     missing = np.isnan(meas[..., 0])
+    # sites left unmarked by design (an orientation mark) have no row and are not "not detected"
+    not_detected = int(missing.sum()) if src.n_not_detected is None else min(src.n_not_detected, int(missing.sum()))
     if missing.any():
-        if not fill_missing:
-            raise MarkcalError(f"{int(missing.sum())} fiducials were not detected; correXion needs every grid "
+        if not_detected and not fill_missing:
+            raise MarkcalError(f"{not_detected} fiducials were not detected; correXion needs every grid "
                                "point (use --fill-missing to fill them from the correction model)", src.folder)
         gx, gy = np.meshgrid(x_nodes, y_nodes)
         q = np.column_stack([gx[missing], gy[missing]])
@@ -191,7 +196,7 @@ def _correxion(src: ScanSource, lens_mm: float, rtc4: bool, fill_missing: bool) 
     bpm = (2 ** 16 if rtc4 else 2 ** 20) / lens_mm
     text = fmt.encode_correxion(x_nodes, y_nodes, meas, bpm, rtc4=rtc4)
     return text.encode("ascii"), {"bits_per_mm": bpm, "grid": f"{len(x_nodes)} x {len(y_nodes)}",
-                                  "filled_points": int(missing.sum())}
+                                  "filled_points": not_detected, "unmarked_sites": int(missing.sum()) - not_detected}
 
 
 def layout_text(kind: str, cor: fmt.CorOptions = fmt.CorOptions(), ctb: fmt.CtbOptions = fmt.CtbOptions(),

@@ -356,10 +356,15 @@ def read_calibration(path) -> tuple:
         raise MarkcalError(f"not a pmcal calibration (bad or missing {exc})", path) from None
 
 
-def run_command(calibration_path, targets_path, depth_um: float) -> dict:
-    """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv."""
+def check_depth_um(depth_um: float) -> None:
+    """Refuse a machining depth that is not finite or beyond the physical limit."""
     if not abs(depth_um) <= max_abs_for("depth_um"):
         raise MarkcalError(f"--depth-um must be a finite number within ±{max_abs_for('depth_um'):g} µm (got {depth_um})")
+
+
+def run_command(calibration_path, targets_path, depth_um: float) -> dict:
+    """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv."""
+    check_depth_um(depth_um)
     model, _ = read_calibration(calibration_path)
     t = read_table(targets_path, ("x_um", "y_um"))
     xy = np.column_stack([t["x_um"], t["y_um"]])
