@@ -84,7 +84,7 @@ def _render_micrograph(args, say) -> int:
     from markcal.fixtures.indent_maps import tiff_bytes
     from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
     from markcal.reports.files import atomic_write_bytes, write_json
-    o = MicrographOptions(style=args.style, pixel_um=args.pixel_um, n_imprints=args.n_imprints,
+    o = MicrographOptions(style=args.style, pixel_um=args.pixel_size_um, n_imprints=args.n_imprints,
                           bar_rows=40 if args.style == "sem" else 0)
     say(f"rendering a {args.style.upper()} micrograph of {args.n_imprints} single imprint(s), seed {args.seed}")
     r = render_micrograph(args.seed, o)
