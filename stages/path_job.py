@@ -139,8 +139,9 @@ class Tour:
 
 # ----------------------------------------------------------------------------- building
 
-#: largest coordinate of a job built in code (TSPLIB boards use unit-less coordinates up to ~1e5); the file
-#: readers hold job files to the physical ±10 m of :mod:`markcal.stages.limits`
+#: largest coordinate of a job (mm): point jobs also carry TSPLIB boards, whose unit-less coordinates reach
+#: ~1e5; the CAD readers (DXF, SVG, HPGL, G-code) hold their files to the physical ±10 m of
+#: :mod:`markcal.stages.limits`
 MAX_ABS_MM = 1e7
 
 

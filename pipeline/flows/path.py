@@ -21,10 +21,10 @@ import numpy as np
 from markcal.pipeline.flows.descriptor import Figure, FlowDescriptor, csv_header, file_ext
 from markcal.pipeline.tables import load_json
 from markcal.stages.errors import MarkcalError
-from markcal.stages.limits import check_text_ends, max_abs_for
+from markcal.stages.limits import check_text_ends
 from markcal.stages.job_formats import JobFile
 from markcal.stages.path_ga import GAOptions, GAResult, run_ga
-from markcal.stages.path_job import CONTOUR, POINT, POLYLINE, Job, Timing, Tour, check_number_leaves, check_tour, \
+from markcal.stages.path_job import CONTOUR, MAX_ABS_MM, POINT, POLYLINE, Job, Timing, Tour, check_number_leaves, check_tour, \
     duplicate_groups, input_tour, make_job, tour_stats
 from markcal.stages.path_layers import join_group_tours, split_groups
 from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, n_kicks_for, \
@@ -158,9 +158,9 @@ def _read_csv(path) -> PathInput:
             raise MarkcalError(f"row {k + 2}: x_mm, y_mm must be numbers ({r[ix]!r}, {r[iy]!r})", path) from None
         if not np.all(np.isfinite(xy[k])):
             raise MarkcalError(f"row {k + 2} (point {k}): NaN or infinite coordinate", path)
-        if np.abs(xy[k]).max() > max_abs_for("x_mm"):
+        if np.abs(xy[k]).max() > MAX_ABS_MM:             # point CSVs also carry TSPLIB boards (up to ~1e5)
             raise MarkcalError(f"row {k + 2} (point {k}): coordinate {np.abs(xy[k]).max():g} mm beyond the "
-                               f"physical limit ±{max_abs_for('x_mm'):g} mm", path)
+                               f"limit ±{MAX_ABS_MM:g} mm", path)
     job = make_job([("point", p) for p in xy], path)
     return JobFile(job, "csv", ("",) * job.n, {}, (), (header, body))
 
