@@ -94,103 +94,47 @@ def ols_select(x_mm, y_mm, spread_mm, max_neurons, mse_goal=0.0, x_val_mm=None):
         Predictions at ``x_val_mm`` for each prefix.
     """
     x = np.asarray(x_mm, float)
-    xv = None if x_val_mm is None else [np.asarray(x_val_mm, float)]
-    orders, mses, preds = _ols_batch([x], [np.asarray(y_mm, float).reshape(len(x), -1)], spread_mm,
-                                     max_neurons, mse_goal, xv)
-    return orders[0], mses[0], (None if preds is None else preds[0])
-
-
-def _ols_batch(xs, ys, spread_mm, max_neurons, mse_goal=0.0, xvs=None):
-    """Forward OLS selection on several training sets at once (the folds of one spread).
-
-    Classical Gram-Schmidt on the selected columns only: the candidates are never
-    deflated. With ``w`` the new orthogonal column, one product ``[w, E]^T P``
-    per step gives the candidates' coefficients on ``w`` (their norms drop by
-    ``coef^2 |w|^2``) and their correlation with the new residual ``E``; the
-    rounding left along the earlier columns is taken out (``- (V^T W) C``), as
-    the deflated columns of the textbook algorithm would. Sets are zero-padded
-    to one size; padded rows add nothing.
-
-    Returns
-    -------
-    orders, mses, preds : lists, one entry per set, as :func:`ols_select` returns them.
-    """
-    nb = len(xs)
-    ns = np.array([len(x) for x in xs])
-    n = int(ns.max())
-    k = ys[0].shape[1]
-    P = np.zeros((nb, n, n))                              # P[b, row, candidate]
-    V = np.zeros((nb, 1 + k, n))                          # [w, E^T]: new column and residual, as rows
-    avail = np.zeros((nb, n), bool)
-    col_means = []
-    for b, (x, y) in enumerate(zip(xs, ys)):
-        d = _design(x, x, spread_mm)
-        col_means.append(d.mean(axis=0))
-        P[b, :ns[b], :ns[b]] = d - col_means[b]          # orthogonal to the bias column
-        V[b, 1:, :ns[b]] = (y - y.mean(axis=0)).T
-        avail[b, :ns[b]] = True
-    E = V[:, 1:]                                          # a view: (nb, k, n)
-    norms = np.einsum("bij,bij->bj", P, P)
+    y = np.asarray(y_mm, float).reshape(len(x), -1)
+    n, k = y.shape
+    P = _design(x, x, spread_mm)
+    col_mean = P.mean(axis=0)
+    P -= col_mean                      # orthogonal to the bias column
+    E = y - y.mean(axis=0)
+    norms = (P * P).sum(axis=0)
     norms0 = norms.copy()
-    cap = np.minimum(max_neurons, ns)
-    steps = int(cap.max())
-    W = np.zeros((nb, steps, n))                          # selected orthogonal columns, as rows
-    C = np.zeros((nb, steps, n))                          # their coefficients on every candidate
-    num = E @ P                                           # (nb, k, n): candidates' correlation with E
-    mse = (E * E).sum(axis=(1, 2)) / (ns * k)
-    mse0 = mse.copy()
-    chosen = np.full((steps, nb), -1)                      # centre chosen at each step (-1: stopped)
-    mse_after = np.zeros((steps, nb))
-    gains = np.zeros((nb, steps, k))                      # output weights of each orthogonal column
-    Pv = Wv = None
-    if xvs is not None:
-        nv = max(len(v) for v in xvs)
-        Pv = np.zeros((nb, nv, n))
-        for b, xv in enumerate(xvs):
-            Pv[b, :len(xv), :ns[b]] = _design(xv, xs[b], spread_mm) - col_means[b]
-        Wv = np.zeros((nb, steps, nv))                    # the orthogonal columns at the validation points
-    rows = np.arange(nb)
-    active = np.ones(nb, bool)
-    for m in range(steps):
-        active &= (m < cap) & (mse > mse_goal)
-        good = avail & (norms > 1e-10 * norms0) & active[:, None]
-        active &= good.any(axis=1)
-        if not active.any():
+    avail = np.ones(n, bool)
+    order = []
+    mse = [float((E * E).mean())]
+    pred = None
+    if x_val_mm is not None:
+        Pv = _design(np.asarray(x_val_mm, float), x, spread_mm)
+        Pv -= col_mean
+        pred = [np.broadcast_to(y.mean(axis=0), (len(Pv), k)).copy()]
+    for _ in range(min(max_neurons, n)):
+        if mse[-1] <= mse_goal:
             break
+        good = avail & (norms > 1e-10 * norms0)
+        if not good.any():
+            break
+        num = P.T @ E                       # (n, k)
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             err = np.where(good, (num * num).sum(axis=1) / np.where(good, norms, 1.0), -1.0)
-        j = np.argmax(err, axis=1)
-        nj = np.where(active, norms[rows, j], 1.0)
-        g = np.where(active[:, None], num[rows, :, j] / nj[:, None], 0.0)   # (nb, k)
-        cj = C[rows, :m, j][:, None, :]                                      # (nb, 1, m)
-        w = P[rows, :, j] - (cj @ W[:, :m])[:, 0]                          # (nb, n)
-        w[~active] = 0.0
-        W[:, m] = w
-        V[:, 0] = w
-        E -= g[:, :, None] * w[:, None, :]
-        prod = V @ P - (V @ W[:, :m].transpose(0, 2, 1)) @ C[:, :m]         # (nb, 1 + k, n)
-        coef = prod[:, 0] / nj[:, None]
-        C[:, m] = coef
-        num = prod[:, 1:] - (E @ w[:, :, None]) * coef[:, None, :]
-        norms = np.maximum(norms - coef * coef * nj[:, None], 0.0)
-        mse = np.where(active, (E * E).sum(axis=(1, 2)) / (ns * k), mse)
-        if Pv is not None:
-            Wv[:, m] = Pv[rows, :, j] - (cj @ Wv[:, :m])[:, 0]
-        avail[rows[active], j[active]] = False
-        chosen[m, active] = j[active]
-        mse_after[m] = mse
-        gains[:, m] = g
-    orders, mses, preds = [], [], []
-    for b in range(nb):
-        last = int((chosen[:, b] >= 0).sum())             # the steps taken form a prefix
-        orders.append(chosen[:last, b].tolist())
-        mses.append(np.r_[mse0[b], mse_after[:last, b]])
-        if Pv is not None:
-            nvb = len(xvs[b])
-            steps_b = Wv[b, :last, :nvb, None] * gains[b, :last, None, :]          # (last, nv, k)
-            start = np.broadcast_to(ys[b].mean(axis=0), (1, nvb, k))
-            preds.append(np.concatenate([start, start + np.cumsum(steps_b, axis=0)]))
-    return orders, mses, (preds if Pv is not None else None)
+        j = int(np.argmax(err))
+        pj = P[:, j].copy()
+        nj = norms[j]
+        g = num[j] / nj
+        E = E - np.outer(pj, g)
+        coef = (pj @ P) / nj
+        if pred is not None:
+            pvj = Pv[:, j].copy()
+            pred.append(pred[-1] + np.outer(pvj, g))
+            Pv -= np.outer(pvj, coef)
+        P -= np.outer(pj, coef)
+        norms = np.maximum(norms - coef * coef * nj, 0.0)
+        avail[j] = False
+        order.append(j)
+        mse.append(float((E * E).mean()))
+    return order, np.array(mse), (None if pred is None else np.array(pred))
 
 
 def train(x_mm, y_mm, spread_mm: float, mse_goal: float, max_neurons: int | None = None) -> RBFModel:
@@ -246,12 +190,10 @@ def select(x_mm, y_mm, spreads_mm, goals_mm2, folds: int = 5, seed: int = 0,
     fold_of = np.random.default_rng(seed).permutation(n) % folds
     cap = max_neurons or n
     sq = np.zeros((len(spreads), len(goals), folds))
-    trs = [fold_of != f for f in range(folds)]
     for i, s in enumerate(spreads):
-        _, mses, preds = _ols_batch([x[tr] for tr in trs], [y[tr] for tr in trs], s, cap, goals.min(),
-                                    [x[~tr] for tr in trs])
-        for f, (mse, pred) in enumerate(zip(mses, preds)):
-            va = ~trs[f]
+        for f in range(folds):
+            tr, va = fold_of != f, fold_of == f
+            _, mse, pred = ols_select(x[tr], y[tr], s, cap, goals.min(), x[va])
             for g, goal in enumerate(goals):
                 m = int(np.argmax(mse <= goal)) if np.any(mse <= goal) else len(mse) - 1
                 e = pred[m] - y[va]

@@ -47,24 +47,6 @@ def test_each_chosen_centre_is_the_largest_error_reduction():
     assert mse[-1] == pytest.approx(np.mean((a @ sol - y) ** 2), rel=1e-9)
 
 
-def test_batched_folds_match_one_run_per_fold():
-    """select() runs all folds of a spread at once, zero-padded: each must equal its own run."""
-    x, y = _data(53, 4)
-    fold = np.arange(53) % 4
-    sets = [fold != f for f in range(4)]                       # training sets of 39 and 40 points
-    orders, mses, preds = rbf._ols_batch([x[t] for t in sets], [y[t] for t in sets], 15.0, 25, 0.0,
-                                         [x[~t] for t in sets])
-    for f, t in enumerate(sets):
-        o, m, p = rbf.ols_select(x[t], y[t], 15.0, 25, 0.0, x[~t])
-        assert orders[f] == o
-        np.testing.assert_allclose(mses[f], m, rtol=1e-9, atol=0)
-        np.testing.assert_allclose(preds[f], p, rtol=0, atol=1e-12)
-        # validation predictions are the least-squares fit of each prefix of centres
-        a = _design(x[t], x[t][o[:10]], 15.0)
-        sol, *_ = np.linalg.lstsq(a, y[t], rcond=None)
-        np.testing.assert_allclose(p[10], _design(x[~t], x[t][o[:10]], 15.0) @ sol, rtol=0, atol=1e-9)
-
-
 def test_selection_stops_at_the_goal_and_the_cap():
     x, y = _data(60, 5)
     order, mse, _ = rbf.ols_select(x, y, 12.0, 60, mse_goal=2e-5)
