@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import numpy as np
 
@@ -72,6 +73,16 @@ def _main_figure(rec, flows):
     return caption, rec.get(k)
 
 
+def _readable_checks(text: str, e) -> str:
+    """``rms_mm 0.25 > 0.05`` -> ``scan deviation RMS, mm 0.25 > 0.05``: summary keys as their captions."""
+    if e is None or not text:
+        return text
+    names = dict(zip(e.key_figures, e.captions))
+    names.update(dict(e.trends))
+    text = re.sub(r"[A-Za-z_][A-Za-z0-9_]*", lambda m: names.get(m.group(0), m.group(0)), text)
+    return text.replace("<=", "≤").replace(">=", "≥")
+
+
 def _summary_table(records, flows, out_dir) -> str:
     head = ["input", "group", "flow", "status", "main figure", "value", "failed checks / reason", "report"]
     ths = "".join(f'<th class="s{" l" if i < 3 or i >= 6 else ""}">{h}</th>' for i, h in enumerate(head))
@@ -81,7 +92,8 @@ def _summary_table(records, flows, out_dir) -> str:
         link = (f'<a href="{esc(_rel(r["report"], out_dir))}">report</a>' if r["report"] else
                 (f'<a href="{esc(_rel(r["out_dir"], out_dir))}/summary.json">summary</a>'
                  if r["status"] != "error" else "–"))
-        why = r["reason"] if r["status"] == "error" else (r["failed_checks"] or r["checks"])
+        why = r["reason"] if r["status"] == "error" else _readable_checks(r["failed_checks"] or r["checks"],
+                                                                          flows.get(r["flow"]))
         rows.append(f'<tr class="st-{r["status"]}" data-status="{r["status"]}">'
                     f'<td class="l" data-v="{esc(r["name"])}" title="{esc(r["input"])}">{esc(r["name"])}</td>'
                     f'{_cell(r["group"])}{_cell(r["flow"])}'
@@ -172,7 +184,7 @@ def batch_index_html(result, out_dir) -> str:
         rs = [r for r in recs if r["flow"] == f]
         parts.append(f"<h2>{esc(f)}: key figures</h2>")
         checks = next((r["checks"] for r in rs if r["checks"]), "")
-        parts.append(f"<p>tolerance: {esc(checks) if checks else 'none (status done)'}</p>")
+        parts.append(f"<p>tolerance: {esc(_readable_checks(checks, shown)) if checks else 'none (status done)'}</p>")
         parts.append(_flow_table(list(shown.key_figures), rs, f, list(shown.captions)))
         for key, label in shown.trends:
             parts.append(_trend_plot(f, key, label, rs))

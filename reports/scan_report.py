@@ -101,11 +101,6 @@ def _summary_section(result) -> str:
         ("model fitting", num(s.get("rbf_training_s"), "s"), "cross-validation and final fit"),
     ]
     out = ["<h2>Summary</h2>", table(["quantity", "value", "note"], rows, left_cols=1)]
-    if str(s.get("orientation_method", "")).startswith("assumed"):
-        out.append('<div class="warn">The orientation was assumed (plate within ±35° of upright): the galvo '
-                   'field cannot tell quarter turns apart (margin '
-                   f'{esc(num(s.get("orientation_margin"), ""))}). If the plate lay otherwise, rerun with '
-                   '--rotation-hint-deg or declare [fiducial] orientation_mark.</div>')
     if result.missing_ids:
         items = []
         for i in result.missing_ids:

@@ -47,7 +47,7 @@ def _quiver(result) -> str:
     key_um = nice_number(0.6 * max(float(mag.max()), 1e-12))
     arrow_key(ax, q, key_um * scale_mm_per_um, f"{key_um:g} µm")
     if result.truth:
-        ax.legend(loc="upper left", fontsize=8, framealpha=0.9)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, frameon=False)   # beside the map
     ax.set_aspect("equal")
     ax.set_xlabel("x (mm)")
     ax.set_ylabel("y (mm)")
