@@ -59,8 +59,12 @@ def _reverse(tour, pos, n, i, j):
         pos[cj] = i
         tour[j] = ci
         pos[ci] = j
-        i = (i + 1) % n
-        j = (j - 1 + n) % n
+        i += 1
+        if i == n:
+            i = 0
+        j -= 1
+        if j < 0:
+            j = n - 1
 
 
 @njit(cache=True)
