@@ -34,11 +34,25 @@ def _c(xy, i, j, a, b):
 
 
 @njit(cache=True)
+def _succ(tour, pos, n, c):
+    """The city after c in the tour array."""
+    p = pos[c] + 1
+    return tour[0 if p == n else p]
+
+
+@njit(cache=True)
+def _pred(tour, pos, n, c):
+    """The city before c in the tour array."""
+    p = pos[c]
+    return tour[n - 1 if p == 0 else p - 1]
+
+
+@njit(cache=True)
 def _jn(tour, pos, n, c):
     """Jump neighbour of city c and the direction (+1: it follows c, -1: it precedes c)."""
-    s = tour[(pos[c] + 1) % n]
+    s = _succ(tour, pos, n, c)
     if s == (c ^ 1):
-        return tour[(pos[c] - 1 + n) % n], -1
+        return _pred(tour, pos, n, c), -1
     return s, 1
 
 
@@ -59,14 +73,18 @@ def _reverse(tour, pos, n, i, j):
         pos[cj] = i
         tour[j] = ci
         pos[ci] = j
-        i = (i + 1) % n
-        j = (j - 1 + n) % n
+        i += 1
+        if i == n:
+            i = 0
+        j -= 1
+        if j < 0:
+            j = n - 1
 
 
 @njit(cache=True)
 def _move2(tour, pos, n, a, b, c, d):
     """2-opt: drop (a,b), (c,d) (b after a, d after c, same way round), add (a,c), (b,d)."""
-    if tour[(pos[a] + 1) % n] == b:
+    if _succ(tour, pos, n, a) == b:
         _reverse(tour, pos, n, pos[b], pos[c])
     else:
         _reverse(tour, pos, n, pos[c], pos[b])
@@ -88,18 +106,32 @@ def _or_move(tour, pos, n, i, L, j, first, buf):
     mf = (j - (i + L) + 1 + 2 * n) % n
     mb = n - L - mf
     if mf <= mb:
+        src = (i + L) % n
+        dst = i % n
         for k in range(mf):
-            c = tour[(i + L + k) % n]
-            tour[(i + k) % n] = c
-            pos[c] = (i + k) % n
-        start = (i + mf) % n
-    else:
-        for k in range(mb):
-            src = (i - 1 - k + 2 * n) % n
-            dst = (src + L) % n
             c = tour[src]
             tour[dst] = c
             pos[c] = dst
+            src += 1
+            if src == n:
+                src = 0
+            dst += 1
+            if dst == n:
+                dst = 0
+        start = (i + mf) % n
+    else:
+        src = (i - 1 + n) % n
+        dst = (src + L) % n
+        for k in range(mb):
+            c = tour[src]
+            tour[dst] = c
+            pos[c] = dst
+            src -= 1
+            if src < 0:
+                src = n - 1
+            dst -= 1
+            if dst < 0:
+                dst = n - 1
         start = (i - mb + n) % n
     for t in range(L):
         p = (start + t) % n
@@ -129,9 +161,9 @@ def _try_2opt(xy, tour, pos, n, neigh, a, b, t1, touched):
         if d13 >= d12 - _EPS:
             continue
         if dr == 1:
-            t4 = tour[(pos[t3] + 1) % n]
+            t4 = _succ(tour, pos, n, t3)
         else:
-            t4 = tour[(pos[t3] - 1 + n) % n]
+            t4 = _pred(tour, pos, n, t3)
         if t4 == (t3 ^ 1) or t3 == t2 or t4 == t1:
             continue
         g = d12 + _c(xy, t3, t4, a, b) - d13 - _c(xy, t2, t4, a, b)
@@ -188,7 +220,7 @@ def _try_oropt(xy, tour, pos, n, neigh, a, b, t1, touched, buf, max_seg):
                     be = e
         if bc >= 0:
             i0 = pos[s1] if dr == 1 else pos[s2]
-            if tour[(pos[bc] + 1) % n] == bcn:
+            if _succ(tour, pos, n, bc) == bcn:
                 left = bc
                 first = be
             else:
@@ -208,7 +240,7 @@ def _try_oropt(xy, tour, pos, n, neigh, a, b, t1, touched, buf, max_seg):
 @njit(cache=True)
 def _lk_flip(tour, pos, n, t1, t2, t4, flips, k):
     """Flip so that (t1, t2) and (t4, t3) become (t1, t4) and (t2, t3); log the reversal as flip k."""
-    if tour[(pos[t1] + 1) % n] == t2:
+    if _succ(tour, pos, n, t1) == t2:
         i = pos[t2]
         j = pos[t4]
     else:
@@ -222,7 +254,7 @@ def _lk_flip(tour, pos, n, t1, t2, t4, flips, k):
 @njit(cache=True)
 def _lk_alternatives(xy, tour, pos, n, neigh, a, b, t1, t2, G, depth, breadth, alt, alt_g, chain):
     """Up to ``breadth`` next steps (t3, t4) from t2 that keep the partial gain positive, best first."""
-    fwd = tour[(pos[t1] + 1) % n] == t2
+    fwd = _succ(tour, pos, n, t1) == t2
     cnt = 0
     for k in range(neigh.shape[1]):
         t3 = neigh[t2, k]
@@ -230,10 +262,10 @@ def _lk_alternatives(xy, tour, pos, n, neigh, a, b, t1, t2, G, depth, breadth, a
         if g1 <= _EPS or t3 == t1:
             continue
         if fwd:
-            t4 = tour[(pos[t3] - 1 + n) % n]
+            t4 = _pred(tour, pos, n, t3)
         else:
-            t4 = tour[(pos[t3] + 1) % n]
-        if t4 == (t3 ^ 1) or t4 == t2 or t3 == tour[(pos[t2] + 1) % n] or t3 == tour[(pos[t2] - 1 + n) % n]:
+            t4 = _succ(tour, pos, n, t3)
+        if t4 == (t3 ^ 1) or t4 == t2 or t3 == _succ(tour, pos, n, t2) or t3 == _pred(tour, pos, n, t2):
             continue
         bad = False
         for m in range(depth):                 # never remove an edge this chain added

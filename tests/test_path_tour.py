@@ -240,3 +240,36 @@ def test_best_entries_moves_a_contour_entry_to_the_near_corner():
     better = best_entries(job, t, TM)
     assert better.entry[1] == 2                                       # (10, 0)
     assert tour_cost(job, better, TM) == pytest.approx(10.0 + np.hypot(10.0, 0.5) + 0.5, abs=1e-12)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_reverse_and_or_move_wrap_around_like_a_list(seed):
+    """The array moves step their positions without modulo: check every wrap against a plain model."""
+    from markcal.stages.path_tour_moves import _or_move, _reverse
+    rng = np.random.default_rng(seed)
+    n = 14
+    for _ in range(200):
+        tour = rng.permutation(n).astype(np.int64)
+        pos = np.argsort(tour).astype(np.int64)
+        i, j = (int(v) for v in rng.integers(n, size=2))
+        run = [(i + t) % n for t in range((j - i) % n + 1)]
+        want = tour.copy()
+        want[run] = tour[run[::-1]]
+        _reverse(tour, pos, n, i, j)
+        same = any(np.array_equal(np.roll(tour, s), want) or np.array_equal(np.roll(tour[::-1], s), want)
+                   for s in range(n))
+        assert same and np.array_equal(pos[tour], np.arange(n))
+        L = int(rng.integers(1, 4))
+        i = int(rng.integers(n))
+        j = (i + L + int(rng.integers(n - L))) % n            # a position outside the run
+        cyc = list(tour)
+        seg = [cyc[(i + t) % n] for t in range(L)]
+        first = seg[-1] if rng.random() < 0.5 else seg[0]
+        left = cyc[j]
+        rest = [c for c in cyc if c not in seg]
+        k = rest.index(left)
+        want = rest[:k + 1] + (seg if first == seg[0] else seg[::-1]) + rest[k + 1:]
+        _or_move(tour, pos, n, i, L, j, first, np.empty(8, np.int64))
+        got = list(tour)
+        r = got.index(want[0])
+        assert got[r:] + got[:r] == want and np.array_equal(pos[tour], np.arange(n))
