@@ -52,8 +52,9 @@ demo: sysdeps $(STAMP)
 	@echo ""
 	@echo "batch index: $$(pwd)/$(DEMO)/batch/index.html"
 
+# The suite runs on two workers (pytest-xdist): about half the wall time on a 2-core machine.
 test: sysdeps browser $(STAMP)
-	$(PY) -m pytest
+	$(PY) -m pytest -n 2
 
 # Mutation score of the measurement stages: each mutant runs only its stage's fast tests with -x
 # (benchmarks/mutants.py; a few minutes on 2 cores). Prints the score, the survivors and which
