@@ -19,6 +19,8 @@ verdicts, galvo equations, drift filters, pm rotations and selfcal, written in s
 who had not read the tests, run on whole test files) killed 22 of 24 on its first run (91.7 %, load 14,
 351 s after the baseline); the two survivors (correction-grid nodes one short of the field edge, a
 signed instead of absolute maximum) are killed by tests/test_deviation_reference.py since.
+Each flow's own list (``benchmarks/mutants_<area>.py``: grid, indents, orientation, path, scan speed,
+servo; 52 mutants) runs with ``--areas``.
 """
 from __future__ import annotations
 

@@ -3,7 +3,7 @@
 ``MUTANTS_GRID`` holds plausible bugs in ``stages/grid_input.py``, ``stages/galvo_fit.py`` and
 ``stages/grid_smooth.py``, one dict each: ``name``, ``kind`` (the harness's kinds), ``file``, ``old``
 (text that occurs exactly once), ``new`` and ``tests`` (pytest arguments of the fast grid tests).
-``python benchmarks/mutants_grid.py`` runs each in a fresh pytest process with the mutated module
+``python benchmarks/mutants.py --areas -k grid`` runs each in a fresh pytest process with the mutated module
 swapped in at import (the source tree is never written) and prints killed / survived.
 
 Not listed, as equivalent: dropping ``- lam * w`` from the spline's affine fit
@@ -17,18 +17,8 @@ swaps survived; the tests that now kill them are ``test_bjjcz_line_and_layout_de
 column of every line) and ``test_physical_model_holds_the_true_galvo``; the CV leak, the hull and the
 prior weight were caught before only by the slow CLI tests and now also by fast hand-computed ones.
 """
-from __future__ import annotations
 
-import argparse
-import sys
-import tempfile
-import time
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-import mutants  # noqa: E402  (the harness: a pytest plugin and its runner)
-
-#: the fast tests of the grid stages (no CLI run to a .cor, no job rendering)
 FAST = ["tests/test_grid.py", "-k", "not grid_to_cor and not grid_job"]
 
 MUTANTS_GRID = [
@@ -58,41 +48,3 @@ MUTANTS_GRID = [
      "old": "return 0.5 * r2 * np.log(r2)", "new": "return r2 * np.log(r2)", "tests": FAST},
 ]
 
-
-def as_mutants() -> list:
-    """The dicts as the harness's ``Mutant`` records (their test selections registered in ``mutants.TESTS``)."""
-    out = []
-    for d in MUTANTS_GRID:
-        mutants.TESTS[d["name"]] = list(d["tests"])
-        out.append(mutants.Mutant(d["name"], d["kind"], d["file"], d["old"], d["new"], d["name"]))
-    return out
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-k", default="", help="only mutants whose name contains this")
-    ap.add_argument("--timeout", type=float, default=300.0)
-    ap.add_argument("--baseline", action="store_true", help="first run the selection without a mutant")
-    args = ap.parse_args(argv)
-    chosen = [m for m in as_mutants() if args.k in m.id]
-    for m in chosen:
-        mutants.mutated_source(m)             # every edit applies once and compiles
-    with tempfile.TemporaryDirectory() as work:
-        if args.baseline and chosen:
-            null = mutants.Mutant("null-grid", "none", chosen[0].file, "", "", chosen[0].tests, count=0)
-            _, status, dt, tail = mutants.run_mutant(null, sys.executable, work, 900.0)
-            print(f"baseline {status:9s} {dt:6.1f} s  {tail}", flush=True)
-            if status != "SURVIVED":
-                return 1
-        killed = 0
-        t0 = time.perf_counter()
-        for m in chosen:
-            _, status, dt, tail = mutants.run_mutant(m, sys.executable, work, args.timeout)
-            killed += status == "killed"
-            print(f"{status:9s} {m.id:32s} {m.kind:18s} {dt:6.1f} s  {tail}", flush=True)
-    print(f"grid mutants: {killed} of {len(chosen)} killed ({time.perf_counter() - t0:.0f} s)")
-    return 0 if killed == len(chosen) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -5,24 +5,14 @@
 through the harness of ``benchmarks/mutants.py`` (the mutated module is swapped in at import in a
 fresh pytest process; the source tree is never written)::
 
-    python benchmarks/mutants_indents.py [-k NAME] [--jobs 2]
+    python benchmarks/mutants.py --areas [-k NAME] [--jobs 2]
 
 A mutant is killed when its tests fail (exit 1), survives when they pass.
 """
-from __future__ import annotations
 
-import argparse
-import concurrent.futures as cf
-import os
-import sys
-import tempfile
-import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-
-import mutants as harness  # noqa: E402
 
 _MICRO = "tests/test_indent_micrograph.py::test_single_micrograph_against_truth"
+
 _SINGLE = "tests/test_indent_single.py"
 
 MUTANTS_INDENTS = [
@@ -91,36 +81,3 @@ MUTANTS_INDENTS = [
     },
 ]
 
-
-def _as_mutant(d: dict):
-    key = "indents:" + d["name"]
-    harness.TESTS[key] = list(d["tests"])
-    return harness.Mutant(d["name"], "indents", d["file"], d["old"], d["new"], key)
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-k", default="", help="only mutants whose name contains this")
-    ap.add_argument("--jobs", type=int, default=2, help="pytest processes at a time")
-    ap.add_argument("--timeout", type=float, default=600.0, help="seconds per mutant (a hang counts as killed)")
-    args = ap.parse_args(argv)
-    chosen = [_as_mutant(d) for d in MUTANTS_INDENTS if args.k in d["name"]]
-    for m in chosen:
-        harness.mutated_source(m)             # every edit applies once and compiles
-    t0 = time.perf_counter()
-    results = []
-    with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        futs = [pool.submit(harness.run_mutant, m, sys.executable, work, args.timeout) for m in chosen]
-        for f in cf.as_completed(futs):
-            m, status, dt, tail = f.result()
-            results.append((m, status))
-            print(f"{status:9s} {m.id:30s} {dt:6.1f} s  {tail}", flush=True)
-    killed = sum(s == "killed" for _m, s in results)
-    print(f"\nindents mutants: {len(results)}, killed {killed}, survived "
-          f"{sum(s == 'SURVIVED' for _m, s in results)}, errors {sum(s.startswith('error') for _m, s in results)} "
-          f"({time.perf_counter() - t0:.0f} s)")
-    return 0 if killed == len(results) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

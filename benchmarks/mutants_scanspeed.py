@@ -5,7 +5,7 @@ Each mutant is one text edit; the harness of benchmarks/mutants.py swaps the mut
 import (the source tree is never written) and runs the listed tests with ``pytest -x``. A mutant is
 killed when they fail.
 
-    python benchmarks/mutants_scanspeed.py [-k NAME] [--jobs 2]
+    python benchmarks/mutants.py --areas [-k NAME] [--jobs 2]
 
 Measured (2 cores, load 13-19): 9 of 9 killed, 5-25 s each. Written and dropped: the fine ring fit's
 window left on the starting centre instead of the capture pass's (``_gather(raster, uv0, ...)``)
@@ -13,24 +13,16 @@ survived every test, because with starts 0.2-0.3 mm off the fine window still ho
 was replaced by the capture pass cut to one iteration. Huber off survived tests/test_ring_refinement.py
 alone; it and the one-iteration capture pass are killed by tests/test_scan_image_refine.py.
 """
-from __future__ import annotations
 
-import argparse
-import concurrent.futures as cf
-import os
-import sys
-import tempfile
-import time
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import mutants  # noqa: E402  (the harness: mutated_source, run_mutant)
 
 RBF_TESTS = ["tests/test_rbf_select.py", "tests/test_detect_rbf.py", "-k", "ols or rbf or select or chosen or batched"]
+
 PLANE_TESTS = ["tests/test_plane.py", "tests/test_geometry.py", "-k", "plane or projection"]
+
 DETECT_TESTS = ["tests/test_scan_image_refine.py", "tests/test_ring_refinement.py"]
+
 IMAGE_TESTS = ["tests/test_plate_image.py", "-k", "1200_dpi or pixel_size_option"]
 
-#: name, file, old text (exactly once), new text, the tests that must kill it
 MUTANTS_SCANSPEED = [
     {"name": "rbf-err-not-normalised", "file": "stages/rbf.py",
      "old": "(num * num).sum(axis=1) / np.where(good, norms, 1.0)", "new": "(num * num).sum(axis=1)",
@@ -52,32 +44,3 @@ MUTANTS_SCANSPEED = [
      "old": "pixel_mm=raster.pixel_mm * f)", "new": "pixel_mm=raster.pixel_mm * (f + 1))", "tests": IMAGE_TESTS},
 ]
 
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("-k", default="", help="only mutants whose name contains this")
-    ap.add_argument("--jobs", type=int, default=2)
-    ap.add_argument("--timeout", type=float, default=600.0)
-    args = ap.parse_args(argv)
-    chosen = []
-    for d in MUTANTS_SCANSPEED:
-        if args.k not in d["name"]:
-            continue
-        key = "scanspeed:" + d["name"]
-        mutants.TESTS[key] = d["tests"]
-        m = mutants.Mutant(d["name"], "scanspeed", d["file"], d["old"], d["new"], key)
-        mutants.mutated_source(m)             # applies exactly once and compiles
-        chosen.append(m)
-    t0 = time.perf_counter()
-    killed = 0
-    with tempfile.TemporaryDirectory() as work, cf.ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        for m, status, dt, tail in pool.map(lambda m: mutants.run_mutant(m, sys.executable, work, args.timeout),
-                                            chosen):
-            killed += status == "killed"
-            print(f"{status:9s} {m.id:36s} {dt:6.1f} s  {tail}", flush=True)
-    print(f"\n{killed} of {len(chosen)} killed ({time.perf_counter() - t0:.0f} s)")
-    return 0 if killed == len(chosen) else 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())
