@@ -127,7 +127,7 @@ def _positions(res):
     ax.axhline(-100, color="r", lw=0.6, ls="--")
     ax.set_xlabel("imprint (file order)")
     ax.set_ylabel("error (nm)")
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)  # above the data
     ax2 = fig.add_subplot(122)
     ax2.scatter(1000 * t["dx_um"][ok], 1000 * t["dy_um"][ok], s=10)
     ax2.add_patch(__import__("matplotlib.patches", fromlist=["Circle"]).Circle((0, 0), 100, fill=False, color="r",

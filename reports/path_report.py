@@ -8,7 +8,6 @@ from __future__ import annotations
 import os
 
 import numpy as np
-from matplotlib.collections import LineCollection
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.job_formats import job_writer
@@ -31,6 +30,7 @@ def ordered_names(result) -> list:
 
 
 def _draw_path(ax, job, tour, title):
+    from matplotlib.collections import LineCollection      # matplotlib only when a report is drawn
     segs = []
     pts = []
     for st in job.strokes:
