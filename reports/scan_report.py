@@ -59,7 +59,7 @@ def _verdict(s: dict, kind: str) -> str:
     else:
         parts.append(f"measured deviation: RMS {num(s.get('rms_mm'))}, max {num(s.get('max_mm'))}")
         if s.get("n_neurons") is not None:
-            parts.append(f"correction model: {s.get('n_neurons')} neurons, CV RMSE {num(s.get('cv_rmse_mm'))}, "
+            parts.append(f"correction model: {s.get('n_neurons')} neuron{'' if s.get('n_neurons') == 1 else 's'}, CV RMSE {num(s.get('cv_rmse_mm'))}, "
                          f"predicted residual RMS {num(s.get('predicted_residual_rms_mm'))}")
         else:
             parts.append(f"correction model: {s.get('model')}, CV RMSE {num(s.get('cv_rmse_mm'))}")
@@ -92,7 +92,7 @@ def _summary_section(result) -> str:
         ("in-plane rotation", num(s.get("in_plane_rotation_deg"), "°"),
          "scanner frame → galvo frame" + (", seen mirrored (from the back)" if s.get("mirrored") else "")),
         ("orientation chosen by", esc(str(s.get("orientation_method", ""))), "orientation mark, rotation hint, "
-         "galvo model, or assumed"),
+         "or galvo model (else the scan is refused)"),
         ("galvo-model orientation margin", num(s.get("orientation_margin"), ""),
          "residual of the best other orientation ÷ the chosen one's (≥ 2 decides alone)"),
         ("plane fit RMS", num(s.get("plane_rms_mm")), f"inlier fraction {num(s.get('plane_inlier_fraction'), '')}"),
