@@ -7,7 +7,7 @@ paper's baseline ("without CCA") cases -- S-curve moves of 10/20/30 mm at
 0.1 m/s and 10 m/s^2, 10 mm sines at 0.1-2 Hz -- and scored by the RMS of
 ln(ours / paper) over Table 1 (overshoot, settling) and Table 2 (MAE, STD).
 
-Run: .venv/bin/python benchmarks/servo_readings.py [--top N] [--markdown] [--stage2] [--diagnose]
+Run: .venv/bin/python benchmarks/servo_readings.py [--top N] [--markdown] [--stage2] [--diagnose] [--cca]
 The metric-only choices (band, origin, sine window) reuse one simulation.
 
 ``--stage2`` (issue 15, second pass) takes the ``--bases`` best distinct
@@ -16,6 +16,16 @@ choices the first search left fixed: sine phase (from 0 at full speed, or from
 its crest at rest), PID per sample (no Ts), a derivative filter, saturation of
 the plant input, what Kf multiplies (velocity, acceleration, nothing) and a
 1 ms sampling period -- with every jerk, band, origin and sine window.
+
+``--cca`` (issue 15, third pass) reads the composite controller's part of
+Table 2 on the default baseline reading: sine start (from 0 at full speed, or
+from the crest at rest), the repetitive lead m (eq. 24's choice for this loop,
+others, the paper's 100), kr, the filter's tau, the delay line D = period/Ts
+(and D +- 1), and which period of the record the CCA's error is measured over
+(period N from rest, or the whole N periods), with the reduction taken against
+the baseline row (the reading's own window) and against the baseline in the
+same window. Scored by how many of the five STD reductions come within a third
+of Table 2's and by the RMS of ln((100 - ours) / (100 - paper)).
 
 ``--diagnose`` fits what Table 2 asks of a linear loop: with a plant
 b0/(s^2 + a1 s) under feed-forward and PID, the steady-state tracking error of
@@ -31,8 +41,8 @@ import math
 import time
 from dataclasses import replace
 
-from markcal.stages.servo_reading import (BANDS, DEFAULT_READING, PAPER_T1_BASE, PAPER_T2_BASE, Reading,
-                                          baseline_rows_many, score_rows)
+from markcal.stages.servo_reading import (BANDS, BASE_READING, DEFAULT_READING, PAPER_T1_BASE, PAPER_T2_BASE,
+                                          Reading, baseline_rows, baseline_rows_many, score_rows)
 
 DYNAMIC = {   # choices that change the simulation
     "plant": ("a0", "no_a0"),
@@ -124,7 +134,7 @@ def diagnose():
     from markcal.stages.servo_plant import PlantParams
     b0 = k2 / PIDGains().kp
     kf = (PlantParams().a1 - c2) / b0
-    steady = replace(DEFAULT_READING, sine_window="last")
+    steady = replace(BASE_READING, sine_window="last")
     rows = baseline_rows_many(steady, [steady], gains=PIDGains(kf=kf),
                               plant=PlantParams(b0=b0 / DEFAULT_READING.b0_scale))[0]
     t1, t2 = fmt_rows(rows)
@@ -138,6 +148,130 @@ def diagnose():
         note = "" if p.a0 == 0 else "  (plant with a0: this model does not apply)"
         print(f"  {name:14s} k = {k:12,.0f}  c = {c:8.2f}  steady |E/R| / Table 2: "
               f"{', '.join(f'{x:.2f}' for x in ratio)}{note}")
+
+
+#: the third search: the composite controller's sine tracking (paper eqs. 18-24) on the default reading
+CCA_CHOICES = {
+    "sine_phase": ("sin", "cos"),
+    "m": ("eq24", 0, 25, 75, 100),       # "eq24": the lead with the largest eq. 24 margin (m = 50 here)
+    "kr": (0.95, 0.5),
+    "tau": (0.085, 0.3),
+}
+#: the CCA's error measured over period N from rest ("last") or the whole N periods ("whole")
+CCA_PERIODS = (2, 3, 4, 5, 6, 7, 8, 9, 10, 12)
+CCA_STEADY_PERIODS = 30
+
+
+def _paper_reductions():
+    from markcal.stages.servo_cases import PAPER_TABLE2
+    return {f: v[4] for f, v in PAPER_TABLE2.items()}
+
+
+def cca_score(reds):
+    """(within a third of Table 2's STD reductions, RMS ln((100 - ours) / (100 - paper)))."""
+    paper = _paper_reductions()
+    within = sum(bool(math.isfinite(r) and abs(r - q) <= q / 3) for r, q in zip(reds, paper.values()))
+    logs = [math.log(max(100 - r, 1e-3) / (100 - q)) if math.isfinite(r) else 5.0 for r, q in zip(reds, paper.values())]
+    return within, math.sqrt(sum(x * x for x in logs) / len(logs))
+
+
+def cca_search(n_max=CCA_PERIODS[-1], d_offsets=(0,)):
+    """Yield dicts: one per CCA choice, record length and window (see ``--cca``)."""
+    import numpy as np
+
+    from markcal.stages.servo_cases import choose_rc, ServoConfig
+    from markcal.stages.servo_control import RepetitiveParams, check_rc_stability
+    from markcal.stages.servo_plant import discretise
+    from markcal.stages.servo_profile import sinusoid
+    from markcal.stages.servo_reading import reading_params, sine_phase_deg
+    from markcal.stages.servo_sim import BASELINE, CCA_TRACK, simulate
+
+    paper = _paper_reductions()
+    keys = list(CCA_CHOICES)
+    m_eq24 = choose_rc(ServoConfig(reading=BASE_READING))[0].m
+    for combo in itertools.product(*CCA_CHOICES.values()):
+        ch = dict(zip(keys, combo))
+        rd = replace(BASE_READING, sine_phase=ch["sine_phase"])
+        p, g = reading_params(rd)
+        dp, ts = discretise(p), p.ts_s
+        m = m_eq24 if ch["m"] == "eq24" else ch["m"]
+        rc = RepetitiveParams(ch["tau"], ch["kr"], m)
+        margin = check_rc_stability(dp, g, rc, n_freq=1500).margin
+        base_sc = score_rows(baseline_rows(rd))
+        for d_off in d_offsets:
+            per = {}
+            for f in paper:
+                prof = sinusoid(10.0, f, n_max, ts, sine_phase_deg(rd))
+                n1 = int(round(1 / f / ts))
+                with np.errstate(all="ignore"):
+                    b = simulate(dp, g, prof, BASELINE).err_mm * 1e3
+                    c = simulate(dp, g, prof, CCA_TRACK, rc=rc, period_s=(n1 + d_off) * ts).err_mm * 1e3
+                row_std = float(np.std(b[:int(round(rd.sine_periods * n1)) + 1]))   # the baseline row's window
+                per[f] = (n1, b, c, row_std)
+            for n in range(2, n_max + 1):
+                if n not in CCA_PERIODS and n != n_max:
+                    continue
+                for win in ("last", "whole"):
+                    reds_row, reds_same, cca = [], [], []
+                    for f, (n1, b, c, row_std) in per.items():
+                        end = n * n1 + 1
+                        sl = slice(end - n1, end) if win == "last" else slice(0, end)
+                        e = c[sl]
+                        ok = bool(np.all(np.isfinite(e))) and float(np.max(np.abs(e))) < 1e6
+                        sd = float(np.std(e)) if ok else math.nan
+                        cca.append((float(np.mean(np.abs(e))) if ok else math.nan, sd))
+                        reds_row.append(100 * (1 - sd / row_std))
+                        reds_same.append(100 * (1 - sd / float(np.std(b[sl]))))
+                    yield {**ch, "m": m, "m_choice": ch["m"], "d_offset": d_off, "periods": n, "window": win,
+                           "eq24_margin": margin, "baseline": base_sc, "cca_rows": cca,
+                           "red_row": reds_row, "red_same": reds_same,
+                           "score_row": cca_score(reds_row), "score_same": cca_score(reds_same)}
+
+
+def cca_main(top, markdown):
+    """Print the ``--cca`` search: best readings of the composite controller's sine rows, and the default's row."""
+    t0, c0 = time.perf_counter(), time.process_time()
+    res = list(cca_search())
+    res += [r for r in cca_search(n_max=CCA_STEADY_PERIODS) if r["periods"] == CCA_STEADY_PERIODS
+            and r["sine_phase"] == "sin" and r["m_choice"] == "eq24" and r["kr"] == 0.95 and r["tau"] == 0.085]
+    res += [r for r in cca_search(d_offsets=(-1, 1)) if r["sine_phase"] == "sin" and r["m_choice"] == "eq24"
+            and r["kr"] == 0.95 and r["tau"] == 0.085 and r["window"] == "last"]
+    print(f"{len(res):,} CCA readings in {time.perf_counter() - t0:.1f} s wall, {time.process_time() - c0:.1f} s CPU")
+    paper = _paper_reductions()
+    print("paper STD reductions (0.1/0.2/0.5/1/2 Hz, 10 mm):", " / ".join(f"{v:g}" for v in paper.values()))
+
+    def line(r):
+        fmt = lambda v: " / ".join(f"{x:.1f}" for x in v)  # noqa: E731
+        sr, ss, b = r["score_row"], r["score_same"], r["baseline"]
+        doff = f", D {r['d_offset']:+d}" if r["d_offset"] else ""
+        desc = (f"{'sine from 0' if r['sine_phase'] == 'sin' else 'sine from crest'}, m {r['m']}"
+                f"{' (eq. 24)' if r['m_choice'] == 'eq24' else ''}, kr {r['kr']:g}, tau {r['tau']:g}"
+                f"{doff}, "
+                f"CCA over {'period ' + str(r['periods']) if r['window'] == 'last' else 'the whole ' + str(r['periods']) + ' periods'}"
+                f" (eq. 24 margin {r['eq24_margin']:.3f})")
+        if markdown:
+            return (f"| {desc} | {b['t1_within']}/6, {b['t2_within']}/10 | {fmt(r['red_row'])} | {sr[0]}/5 | "
+                    f"{fmt(r['red_same'])} | {ss[0]}/5 |")
+        return (f"{sr[0]}/5 {sr[1]:.3f} | same window {ss[0]}/5 {ss[1]:.3f} | baseline T1 {b['t1_within']}/6 "
+                f"T2 {b['t2_within']}/10 | {desc}\n      vs row: {fmt(r['red_row'])} | same window: "
+                f"{fmt(r['red_same'])} | CCA MAE/STD µm: "
+                + " ".join(f"{a:.3g}/{s_:.3g}" for a, s_ in r["cca_rows"]))
+    ranked = sorted(res, key=lambda r: (-min(r["score_row"][0], r["score_same"][0]),
+                                        -(r["baseline"]["t2_within"] >= 7), r["score_row"][1]))
+    if markdown:
+        print("| CCA reading | baseline rows T1, T2 | STD reductions vs the baseline row, % | within ⅓ | "
+              "vs the baseline in the same window, % | within ⅓ |\n|---|---|---|---|---|---|")
+    for r in ranked[:top]:
+        print(line(r))
+    print("-- the paper's parameters (kr 0.95, tau 0.085), eq. 24's m, sine from 0, D = period/Ts, by window:")
+    for r in res:
+        if r["sine_phase"] == "sin" and r["m_choice"] == "eq24" and r["kr"] == 0.95 and r["tau"] == 0.085:
+            print(line(r))
+    print("-- the paper's m = 100 (violates eq. 24 here) and the crest start, paper's kr and tau, period 8:")
+    for r in res:
+        if (r["m_choice"] == 100 or r["sine_phase"] == "cos") and r["kr"] == 0.95 and r["tau"] == 0.085 \
+                and r["periods"] == 8 and r["window"] == "last" and r["m_choice"] in (100, "eq24"):
+            print(line(r))
 
 
 def fmt_rows(rows):
@@ -155,7 +289,11 @@ def main():
     ap.add_argument("--stage2", action="store_true", help="cross the best bases with the second-pass choices")
     ap.add_argument("--bases", type=int, default=6, help="bases of the first search taken into --stage2")
     ap.add_argument("--diagnose", action="store_true", help="what Table 2 asks of a linear loop, and exit")
+    ap.add_argument("--cca", action="store_true", help="the composite controller's sine rows (Table 2), and exit")
     a = ap.parse_args()
+    if a.cca:
+        cca_main(a.top, a.markdown)
+        return
     if a.diagnose:
         diagnose()
         return
@@ -184,7 +322,7 @@ def main():
         shown += 1
         if shown >= a.top:
             break
-    d = [x for x in res if x[0] == DEFAULT_READING]
+    d = [x for x in res if x[0] == BASE_READING]
     if d:
         print(f"default reading: score {d[0][2]['score']:.3f}, rank {res.index(d[0]) + 1} of {len(res)}")
 
