@@ -14,6 +14,9 @@ TRUTHS = ["tests/test_servo_truths.py"]
 LOGS = ["tests/test_servo_truths.py", "tests/test_servo_log.py", "-k",
         "truths or moves_against_truth or sine_against_truth"]
 
+#: the composite controller's Table 2 rows (issue 15, third pass)
+CCA_SINE = ["tests/test_servo.py", "-k", "paper_defaults or learned_period or previous_window"]
+
 MUTANTS_SERVO = [
     {"name": "servo-std-as-rms", "kind": "dropped-term", "file": "stages/servo_sim.py",
      "old": "return float(np.mean(np.abs(e_um))), float(np.std(e_um))",
@@ -36,5 +39,9 @@ MUTANTS_SERVO = [
      "old": '"us": 1e-6}', "new": '"us": 1e-3}', "tests": LOGS},
     {"name": "servo-rise-to-95pct", "kind": "unit-factor", "file": "stages/servo_log.py",
      "old": "_crossing_time(t, y, 0.9, 1)", "new": "_crossing_time(t, y, 0.95, 1)", "tests": TRUTHS},
+    {"name": "servo-cca-window-one-period-early", "kind": "off-by-one", "file": "pipeline/flows/servo.py",
+     "old": "n = int(round(n_cca / freq / ts)) + 1", "new": "n = int(round((n_cca - 1) / freq / ts)) + 1",
+     "tests": CCA_SINE},
+    {"name": "servo-rc-lead-as-lag", "kind": "sign", "file": "stages/servo_sim.py",
+     "old": "j = k - rc_D + rc_m", "new": "j = k - rc_D - rc_m", "tests": CCA_SINE},
 ]
-
