@@ -294,7 +294,7 @@ def read_servo_config(path):
         validate_config(cfg)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
-    longest_s = max([cfg.periods / f for f in cfg.frequencies_hz]
+    longest_s = max([max(cfg.periods, cfg.reading.cca_sine_periods) / f for f in cfg.frequencies_hz]
                     + [abs(x) / cfg.velocity_mm_s + cfg.velocity_mm_s / cfg.acceleration_mm_s2 + cfg.dwell_s
                        for x in cfg.strokes_mm])
     if longest_s / cfg.plant.ts_s > MAX_SERVO_SAMPLES:

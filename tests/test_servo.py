@@ -207,6 +207,8 @@ def _err(capsys):
     ("[repetitive]\nm = 100\n", "eq. 24 violated"),
     ("[repetitive]\nkr = 3.0\nm = 7\n", "eq. 24 violated"),
     ("[controller]\nkp = 1e6\n", "unstable"),
+    # 2 periods at 0.002 Hz are 10 M samples, but the CCA learns over 8 (40 M): refused before simulating
+    ("[sine]\nfrequencies_hz = [0.002]\nperiods = 2\n", "the longest case would be 4e+07 samples"),
 ])
 def test_bad_configs_refused(tmp_path, capsys, text, needle):
     cfg = tmp_path / "bad.toml"
