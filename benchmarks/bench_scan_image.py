@@ -7,6 +7,8 @@ and reads its peak RSS. Issue 22 goals at 1200 dpi: centre error <= 0.1 px RMS, 
 <= 4 GiB.
 
     python benchmarks/bench_scan_image.py [DPI ...]     (default 1200; repeats: 3)
+    python benchmarks/bench_scan_image.py --variants [DPI ...]
+        once per image variant (8-bit TIFF, JPEG q90, 16-bit, RGB, paper, 300 dust specks), error table
 """
 from __future__ import annotations
 
@@ -39,12 +41,22 @@ def run_once(path, plate, out):
     return wall, ru.ru_utime + ru.ru_stime, rss_kib / 2 ** 20
 
 
-def main(dpis, repeats=3, fmt="tif"):
+VARIANTS = {  # name -> (ImageOptions keywords, file format)
+    "8-bit TIFF": ({}, "tif"),
+    "JPEG q90": ({"jpeg_quality": 90}, "png"),
+    "16-bit": ({"bits": 16}, "tif"),
+    "RGB": ({"rgb": True}, "tif"),
+    "paper": ({"material": "paper"}, "tif"),
+    "dust x5": ({"n_dust": 300, "n_hairs": 20}, "tif"),
+}
+
+
+def main(dpis, repeats=3, fmt="tif", variants=None):
     spec = PlateSpec(orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
-    for dpi in dpis:
+    for dpi, name, kw, fmt in [(d, n, kw, f) for d in dpis for n, (kw, f) in (variants or {"": ({}, fmt)}).items()]:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            r = render_plate_image(1, spec, ImageOptions(dpi=dpi, jpeg_quality=None))
+            r = render_plate_image(1, spec, ImageOptions(dpi=dpi, **kw))
             paths = save_plate_image(tmp, r, fmt=fmt)
             t_render = time.perf_counter() - t0
             walls, cpus, loads = [], [], []
@@ -63,7 +75,7 @@ def main(dpis, repeats=3, fmt="tif"):
             tc = np.array(r.truth["fiducials"]["col_px"])[ids]
             tr = np.array(r.truth["fiducials"]["row_px"])[ids]
             e = np.hypot(col - tc, row - tr)
-            print(f"{dpi:5.0f} dpi {r.pixels.shape[1]} x {r.pixels.shape[0]} px ({fmt}, rendered in {t_render:.1f} s): "
+            print(f"{name:10s} {dpi:5.0f} dpi {r.pixels.shape[1]} x {r.pixels.shape[0]} px ({fmt}, rendered in {t_render:.1f} s): "
                   f"{s['n_detected']}/{s['n_expected']} marks, centre error RMS {np.sqrt(np.mean(e ** 2)):.4f} px "
                   f"(max {e.max():.3f} px) = {np.sqrt(np.mean(e ** 2)) * px * 1000:.2f} um; whole command median "
                   f"{np.median(walls):.1f} s (of {repeats}: {', '.join(f'{w:.1f}' for w in walls)}), "
@@ -72,4 +84,9 @@ def main(dpis, repeats=3, fmt="tif"):
 
 
 if __name__ == "__main__":
-    main([float(a) for a in sys.argv[1:]] or [1200.0])
+    args = sys.argv[1:]
+    if "--variants" in args:
+        args.remove("--variants")
+        main([float(a) for a in args] or [1200.0], repeats=1, variants=VARIANTS)
+    else:
+        main([float(a) for a in args] or [1200.0])

@@ -177,3 +177,100 @@ def flat_plane() -> Plane:
     """The image plane as the plate plane: (u, v) -> (u, v, 0)."""
     return Plane(origin_mm=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), e_u=np.array([1.0, 0.0, 0.0]),
                  e_v=np.array([0.0, 1.0, 0.0]), rms_mm=0.0, inlier_fraction=1.0, threshold_mm=0.0)
+
+
+#: a flat (flatbed-like) view: opposite edges of the fitted mark grid agree in length within this
+#: fraction. A galvo's own field gives up to 0.10 % on a 19 x 19 plate (200 rendered machines at any turn);
+#: a camera tilted 1 deg whose view spans +-0.2 rad gives about 0.7 % (keystone ~ 2 tan(tilt) x half-extent / distance).
+MAX_KEYSTONE = 0.003
+#: ``--view``: "auto" refuses an image with more keystone (a camera); "flatbed" takes it as a flat view
+VIEWS = ("auto", "flatbed")
+
+
+@dataclass(frozen=True)
+class ViewGeometry:
+    """How far the detected grid is from a flat, orthographic view.
+
+    ``keystone``: the largest relative length difference of opposite edges of
+    the grid's outline under the best homography (0 for any similarity or
+    affine map); ``perspective_mm``: the largest shift the homography's
+    perspective terms cause at the outline's corners beyond the best affine map.
+    """
+
+    keystone: float
+    perspective_mm: float
+    n_marks: int
+
+
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares (normalised DLT) homography src -> dst, 3 x 3, H[2, 2] = 1."""
+    def norm(p):
+        c = p.mean(axis=0)
+        s = np.sqrt(2.0) / max(np.mean(np.linalg.norm(p - c, axis=1)), 1e-12)
+        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    ts, td = norm(src), norm(dst)
+    a = np.c_[src, np.ones(len(src))] @ ts.T
+    b = np.c_[dst, np.ones(len(dst))] @ td.T
+    z, o = np.zeros((len(a), 3)), np.ones(len(a))
+    rows = np.vstack([np.c_[a, z, -b[:, :1] * a], np.c_[z, a, -b[:, 1:2] * a]])
+    h = np.linalg.svd(rows)[2][-1].reshape(3, 3)
+    h = np.linalg.inv(td) @ h @ ts
+    return h / h[2, 2]
+
+
+def _apply(h: np.ndarray, p: np.ndarray) -> np.ndarray:
+    q = np.c_[p, np.ones(len(p))] @ h.T
+    return q[:, :2] / q[:, 2:]
+
+
+def view_geometry(uv_mm: np.ndarray, pitch_mm: float) -> ViewGeometry:
+    """Perspective of the detected marks: homography from the ideal lattice to the detected centres.
+
+    Parameters
+    ----------
+    uv_mm : ndarray, shape (n, 2)
+        Detected mark centres (image mm).
+    pitch_mm : float
+        The plate's pitch.
+    """
+    from .register import lattice_coords
+    lat = lattice_coords(uv_mm, pitch_mm)
+    src = lat.k[lat.good] * pitch_mm
+    dst = np.asarray(uv_mm, float)[lat.good]
+    if len(src) < 8 or np.linalg.matrix_rank(src - src.mean(axis=0)) < 2:
+        return ViewGeometry(0.0, 0.0, int(len(src)))
+    return perspective_of(src, dst)
+
+
+def perspective_of(src_mm: np.ndarray, dst_mm: np.ndarray) -> ViewGeometry:
+    """Keystone and perspective shift of the best homography from ideal points to measured ones."""
+    src, dst = np.asarray(src_mm, float), np.asarray(dst_mm, float)
+    h = _homography(src, dst)
+    lo, hi = src.min(axis=0), src.max(axis=0)
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    c = _apply(h, corners)
+    edge = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)          # bottom, right, top, left
+    keystone = max(abs(edge[0] / edge[2] - 1), abs(edge[1] / edge[3] - 1))
+    a_aff = np.linalg.lstsq(np.c_[src, np.ones(len(src))], _apply(h, src), rcond=None)[0]
+    persp = np.linalg.norm(c - np.c_[corners, np.ones(4)] @ a_aff, axis=1).max()
+    return ViewGeometry(float(keystone), float(persp), int(len(src)))
+
+def check_flat_view(uv_mm: np.ndarray, pitch_mm: float, refuse: bool = True,
+                    max_keystone: float = MAX_KEYSTONE) -> ViewGeometry:
+    """The view's perspective (``view_geometry``); refused above ``max_keystone`` when ``refuse``.
+
+    Raises
+    ------
+    MarkcalError
+        Keystone above ``max_keystone``: the message gives it and what to do.
+    """
+    g = view_geometry(uv_mm, pitch_mm)
+    if refuse and g.keystone > max_keystone:
+        raise MarkcalError(
+            f"the image shows perspective: opposite edges of the mark grid differ in length by "
+            f"{100 * g.keystone:.2f} % (keystone; the marks sit up to {g.perspective_mm:.2f} mm off a flat view; "
+            f"refused above {100 * max_keystone:.1f} %): a camera view? markcal cannot tell a camera's perspective "
+            "and lens distortion from the galvo's on one image of the marked plate: image the plate on a "
+            "flatbed scanner or measure it with a 3D scanner; if this is a flatbed image (a plate marked with "
+            "no lens correction can show up to 1.5 %), give --view flatbed")
+    return g
