@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -29,7 +28,7 @@ from markcal.stages.plate import PlateSpec
 
 
 def run_once(path, plate, out):
-    """One whole command in a child; returns (wall s, CPU s of the child, peak RSS GiB so far)."""
+    """One whole command in a child; returns (wall s, CPU s of the child, its peak RSS GiB)."""
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "markcal.pipeline.cli", "scan", path, "--plate", plate,
                           "--out", out, "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -38,8 +37,7 @@ def run_once(path, plate, out):
     err = p.stderr.read()
     if os.waitstatus_to_exitcode(status) not in (0, 4):          # 4: out of tolerance, outputs written
         raise SystemExit(err)
-    rss_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, ru.ru_utime + ru.ru_stime, rss_kib / 2 ** 20
+    return wall, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 2 ** 20          # this child's own peak (KiB)
 
 
 VARIANTS = {  # name -> (ImageOptions keywords, file format)
