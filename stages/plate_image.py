@@ -181,7 +181,7 @@ def flat_plane() -> Plane:
 
 #: a flat (flatbed-like) view: opposite edges of the fitted mark grid agree in length within this
 #: fraction. A galvo's own field gives up to 0.10 % on a 19 x 19 plate (200 rendered machines at any turn);
-#: a camera tilted 1 deg whose view spans +-0.2 rad gives about 0.7 % (keystone ~ 2 tan(tilt) x half-extent / distance).
+#: a camera tilted 1 deg whose view spans +-0.2 rad gives up to 0.7 % (2 tan(tilt) x half-extent / distance).
 MAX_KEYSTONE = 0.003
 #: ``--view``: "auto" refuses an image with more keystone (a camera); "flatbed" takes it as a flat view
 VIEWS = ("auto", "flatbed")

@@ -22,7 +22,7 @@ from markcal.stages.plate_image import MAX_KEYSTONE, perspective_of, view_geomet
 
 MARKED = PlateSpec(rows=5, cols=5, orientation_mark=(0, 1))
 DPI = 600          # pixel footprint at the plate centre (0.042 mm): small, fast images
-WIDE = {"focal_mm": 8.0}        # a field of view of about +-0.3 rad over the 5 x 5 plate, like a camera filling its frame
+WIDE = {"focal_mm": 8.0}        # the 5 x 5 grid spans +-0.22 rad, like a camera filling its frame with the plate
 
 
 def _true_keystone(render) -> float:
@@ -46,7 +46,7 @@ def test_camera_render_truth_and_no_dpi(tilted):
     assert r.truth["view"] == "camera" and cam["tilt_deg"] == 3.0 and cam["k1"] == -0.05
     with pytest.raises(MarkcalError, match="no pixel size"):
         read_plate_image(paths["image"])
-    # measured 1.68 % for this view: a 3 deg tilt over a +-0.3 rad field, 2 tan(3 deg) x 0.27
+    # measured 1.68 % for this view: a 3 deg tilt over a grid spanning +-0.22 rad, at most 2 tan(3 deg) x 0.22
     assert 0.012 <= _true_keystone(r) <= 0.022
 
 
