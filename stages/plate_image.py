@@ -42,8 +42,20 @@ class PlateImage:
     inverted: bool
 
 
+def _focal_text(focal, make, model) -> str | None:
+    """'focal length 35 mm, Canon EOS 5D' from EXIF values (a rational may come as a pair), or None."""
+    try:
+        f = float(focal[0]) / float(focal[1]) if isinstance(focal, tuple) else float(focal)
+    except (TypeError, ValueError, ZeroDivisionError, IndexError):
+        return None
+    if not (np.isfinite(f) and f > 0):
+        return None
+    who = " ".join(str(v).strip("\0 ") for v in (make, model) if v)
+    return f"focal length {f:g} mm" + (f", {who}" if who else "")
+
+
 def _read_pixels(path: str, ext: str) -> tuple:
-    """Pixels as an array and the resolution as (dpi_x, dpi_y) or None."""
+    """Pixels as an array, the resolution as (dpi_x, dpi_y) or None, and the camera the EXIF names or None."""
     if ext in (".tif", ".tiff"):
         import tifffile
         try:
@@ -51,6 +63,9 @@ def _read_pixels(path: str, ext: str) -> tuple:
                 page = tf.pages[0]
                 arr = page.asarray()
                 tags = page.tags
+                exif = tags["ExifTag"].value if "ExifTag" in tags else {}
+                camera = _focal_text(exif.get("FocalLength") if isinstance(exif, dict) else None,
+                                     *(tags[k].value if k in tags else None for k in ("Make", "Model")))
                 dpi = None
                 if "XResolution" in tags and "YResolution" in tags:
                     unit = tags["ResolutionUnit"].value if "ResolutionUnit" in tags else 2
@@ -60,18 +75,23 @@ def _read_pixels(path: str, ext: str) -> tuple:
                         dpi = (xr[0] / xr[1] * per, yr[0] / yr[1] * per)
         except (OSError, ValueError, tifffile.TiffFileError, IndexError, KeyError) as exc:
             raise MarkcalError(f"cannot read TIFF ({exc})") from None
-        return arr, dpi
+        return arr, dpi, camera
     from PIL import Image, UnidentifiedImageError
     Image.MAX_IMAGE_PIXELS = 400_000_000
     try:
         with Image.open(path) as im:
             dpi = im.info.get("dpi")
+            try:        # a damaged EXIF block says nothing about a camera; the pixels may still be fine
+                exif = im.getexif()
+                camera = _focal_text(exif.get_ifd(0x8769).get(0x920A), exif.get(0x010F), exif.get(0x0110))
+            except (OSError, ValueError, TypeError, KeyError, SyntaxError):
+                camera = None
             if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr", "1"):
                 im = im.convert("RGB")
             arr = np.asarray(im)
     except (OSError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
         raise MarkcalError(f"cannot read image ({exc})") from None
-    return arr, (tuple(float(v) for v in dpi) if dpi else None)
+    return arr, (tuple(float(v) for v in dpi) if dpi else None), camera
 
 
 def _grey(arr: np.ndarray) -> tuple:
@@ -94,21 +114,28 @@ def _grey(arr: np.ndarray) -> tuple:
     return (arr if arr.dtype in (np.uint8, np.uint16) else arr.astype(np.float32)), bits
 
 
-def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
+def read_plate_image(path, pixel_size_mm: float | None = None, refuse_camera: bool = True) -> PlateImage:
     """Read a plate image (TIFF, PNG, JPEG), grey or RGB, 8/16 bit.
 
     Parameters
     ----------
     pixel_size_mm : float, optional
         Side of a pixel on the plate (mm); default: from the file's resolution.
+    refuse_camera : bool
+        Refuse a file whose EXIF gives a lens focal length (a camera took it).
 
     Raises
     ------
     MarkcalError
-        Unreadable file, unknown pixel size, unsupported layout.
+        Unreadable file, a camera's image, unknown pixel size, unsupported layout.
     """
     path, ext = existing_file(path)
-    arr, dpi = _read_pixels(path, ext)
+    arr, dpi, camera = _read_pixels(path, ext)
+    if camera and refuse_camera:
+        raise MarkcalError(f"the image was taken through a camera lens (EXIF: {camera}): markcal cannot tell a "
+                           "camera's perspective and lens distortion from the galvo's on one image of the marked "
+                           "plate: image the plate on a flatbed scanner or measure it with a 3D scanner (--view "
+                           "flatbed takes the image as a flat view)")
     if dpi is not None:     # PNG stores pixels per metre: 1200 dpi comes back as 1199.998
         dpi = tuple(float(np.rint(d)) if abs(d - np.rint(d)) < 0.02 else float(d) for d in dpi)
     if pixel_size_mm is not None:

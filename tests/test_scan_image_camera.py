@@ -136,3 +136,19 @@ def test_truth_json_holds_the_camera_model(tilted, tmp_path):
     cam = t["camera"]
     assert set(cam) >= {"focal_mm", "tilt_deg", "tilt_axis_deg", "k1", "k2", "distance_mm", "world_to_camera"}
     assert len(t["fiducials"]["x_world_mm"]) == 25
+
+
+def test_exif_focal_length_marks_a_camera_image(tmp_path):
+    # a square-on camera passes the keystone check; its EXIF still tells (a flatbed writes no focal length)
+    from PIL import Image, TiffImagePlugin
+    from markcal.stages.plate_image import read_plate_image
+    exif = Image.Exif()
+    exif[0x010F], exif[0x0110] = "Canon", "EOS 5D"
+    exif.get_ifd(0x8769)[0x920A] = TiffImagePlugin.IFDRational(35, 1)
+    p = tmp_path / "photo.jpg"
+    Image.fromarray(np.full((40, 40), 128, np.uint8)).save(p, exif=exif, dpi=(600, 600))
+    with pytest.raises(MarkcalError, match=r"camera lens \(EXIF: focal length 35 mm, Canon EOS 5D\).*--view flatbed"):
+        run_scan(p, MARKED)
+    assert read_plate_image(p, refuse_camera=False).pixel_mm == pytest.approx(25.4 / 600)
+    Image.fromarray(np.full((40, 40), 128, np.uint8)).save(tmp_path / "scan.jpg", dpi=(600, 600))
+    assert read_plate_image(tmp_path / "scan.jpg").pixel_mm == pytest.approx(25.4 / 600)

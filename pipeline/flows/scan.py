@@ -123,7 +123,7 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
     try:
         if file_ext(cloud_path) in IMAGE_EXTS:
             say("reading image")
-            image = read_plate_image(cloud_path, opt.pixel_size_mm)
+            image = read_plate_image(cloud_path, opt.pixel_size_mm, refuse_camera=opt.view == "auto")
             return _run_image(image, str(cloud_path), spec, opt, say, t0)
         say("reading cloud")
         cloud = read_cloud(cloud_path)
