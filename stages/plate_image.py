@@ -210,6 +210,11 @@ def flat_plane() -> Plane:
 #: fraction. A galvo's own field gives up to 0.10 % on a 19 x 19 plate (200 rendered machines at any turn);
 #: a camera tilted 1 deg whose view spans +-0.2 rad gives up to 0.7 % (2 tan(tilt) x half-extent / distance).
 MAX_KEYSTONE = 0.003
+#: the limit when the pixel size comes from the file's own scanner resolution tag (cameras write none, or a
+#: 72/96 dpi screen default that is refused): above the 1.5 % a raw, uncorrected galvo field shows on the
+#: two real EZCAD tables, so a flatbed image of a plate marked without lens correction is taken; a camera
+#: tilted more than about 3 deg is still refused
+MAX_KEYSTONE_SCANNER_DPI = 0.02
 #: ``--view``: "auto" refuses an image with more keystone (a camera); "flatbed" takes it as a flat view
 VIEWS = ("auto", "flatbed")
 

@@ -18,7 +18,7 @@ from markcal.pipeline.flows.scan import ScanOptions as FlowOptions
 from markcal.pipeline.flows.scan import run_scan
 from markcal.stages.errors import MarkcalError
 from markcal.stages.plate import PlateSpec, nominal_grid
-from markcal.stages.plate_image import MAX_KEYSTONE, perspective_of, view_geometry
+from markcal.stages.plate_image import MAX_KEYSTONE, MAX_KEYSTONE_SCANNER_DPI, perspective_of, view_geometry
 
 MARKED = PlateSpec(rows=5, cols=5, orientation_mark=(0, 1))
 DPI = 600          # pixel footprint at the plate centre (0.042 mm): small, fast images
@@ -70,6 +70,23 @@ def test_view_flatbed_takes_the_image_and_reports_the_keystone(tilted):
     res = run_scan(paths["image"], MARKED, FlowOptions(pixel_size_mm=r.pixel_mm, view="flatbed"))
     assert res.summary["n_detected"] == 24
     assert res.summary["image_keystone"] == pytest.approx(_true_keystone(r), abs=0.002)
+
+
+def test_scanner_resolution_tag_takes_a_raw_galvo_keystone_but_not_a_steep_camera(tilted, tmp_path):
+    # a pixel size from the file's own resolution tag (a flatbed scanner's) allows up to 2 %, above the
+    # 1.3-1.5 % of the raw galvo fields of the real EZCAD tables; the 3 deg view (1.68 %) passes, 6 deg does not
+    r, _ = tilted
+    paths = save_plate_image(str(tmp_path / "tagged"), r, dpi_tags=True)
+    res = run_scan(paths["image"], MARKED, FlowOptions())
+    assert res.summary["image_pixel_size_from"].endswith("resolution tag")
+    assert res.summary["image_keystone"] == pytest.approx(_true_keystone(r), abs=0.002)
+    assert MAX_KEYSTONE < res.summary["image_keystone"] < MAX_KEYSTONE_SCANNER_DPI
+    steep = render_camera_image(23, MARKED, ImageOptions(dpi=DPI, rotation_deg=5.0),
+                                CameraOptions(tilt_deg=6.0, **WIDE))
+    assert _true_keystone(steep) > 1.2 * MAX_KEYSTONE_SCANNER_DPI
+    paths = save_plate_image(str(tmp_path / "steep"), steep, dpi_tags=True)
+    with pytest.raises(MarkcalError, match=r"shows perspective.*refused above 2\.0 %"):
+        run_scan(paths["image"], MARKED, FlowOptions())
 
 
 def test_square_on_camera_without_distortion_is_a_flat_view(tmp_path):

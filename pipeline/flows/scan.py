@@ -19,8 +19,9 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.io import read_cloud
 from markcal.stages.plane import Plane, fit_plane, from_plane
 from markcal.stages.plate import PlateSpec, nominal_grid
-from markcal.stages.plate_image import (IMAGE_EXTS, VIEWS, check_flat_view, check_image_size, coarse_raster,
-                                        flat_plane, image_raster, read_plate_image)
+from markcal.stages.plate_image import (IMAGE_EXTS, MAX_KEYSTONE, MAX_KEYSTONE_SCANNER_DPI, VIEWS,
+                                        check_flat_view, check_image_size, coarse_raster, flat_plane,
+                                        image_raster, read_plate_image)
 from markcal.stages.project import Raster, project
 from markcal.stages.galvo_fit import KINDS, choose_model
 from markcal.stages.register import Rigid2D, lattice_coords, rigid_fit, robust_rigid_fit
@@ -215,7 +216,8 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
     say("identifying rows, columns and the plate's orientation")
     uv_all = fit.uv_mm[idx]
     if "image_pixel_mm" in extra:       # a camera's perspective is refused, not calibrated (docs/scan.md)
-        extra["image_keystone"] = check_flat_view(uv_all, spec.pitch_mm, refuse=opt.view == "auto").keystone
+        limit = MAX_KEYSTONE if extra["image_pixel_size_from"] == "--pixel-size-mm" else MAX_KEYSTONE_SCANNER_DPI
+        extra["image_keystone"] = check_flat_view(uv_all, spec.pitch_mm, opt.view == "auto", limit).keystone
     r_all, c_all, q_all = nominal_grid(spec)
     choice = _orientation(uv_all, spec, q_all, opt)
     cand = choice.chosen
