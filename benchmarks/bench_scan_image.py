@@ -7,12 +7,14 @@ and reads its peak RSS. Issue 22 goals at 1200 dpi: centre error <= 0.1 px RMS, 
 <= 4 GiB.
 
     python benchmarks/bench_scan_image.py [DPI ...]     (default 1200; repeats: 3)
+    python benchmarks/bench_scan_image.py --variants [--rows N] [DPI ...]
+        once per image variant (8-bit TIFF, JPEG q90, 16-bit, RGB, paper, 300 dust specks), error table;
+        --rows N: an N x N plate (the same pitch) instead of 19 x 19, for 2400 dpi on a loaded machine
 """
 from __future__ import annotations
 
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -26,7 +28,7 @@ from markcal.stages.plate import PlateSpec
 
 
 def run_once(path, plate, out):
-    """One whole command in a child; returns (wall s, CPU s of the child, peak RSS GiB so far)."""
+    """One whole command in a child; returns (wall s, CPU s of the child, its peak RSS GiB)."""
     t0 = time.perf_counter()
     p = subprocess.Popen([sys.executable, "-m", "markcal.pipeline.cli", "scan", path, "--plate", plate,
                           "--out", out, "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -35,16 +37,25 @@ def run_once(path, plate, out):
     err = p.stderr.read()
     if os.waitstatus_to_exitcode(status) not in (0, 4):          # 4: out of tolerance, outputs written
         raise SystemExit(err)
-    rss_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    return wall, ru.ru_utime + ru.ru_stime, rss_kib / 2 ** 20
+    return wall, ru.ru_utime + ru.ru_stime, ru.ru_maxrss / 2 ** 20          # this child's own peak (KiB)
 
 
-def main(dpis, repeats=3, fmt="tif"):
-    spec = PlateSpec(orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
-    for dpi in dpis:
+VARIANTS = {  # name -> (ImageOptions keywords, file format)
+    "8-bit TIFF": ({}, "tif"),
+    "JPEG q90": ({"jpeg_quality": 90}, "png"),
+    "16-bit": ({"bits": 16}, "tif"),
+    "RGB": ({"rgb": True}, "tif"),
+    "paper": ({"material": "paper"}, "tif"),
+    "dust x5": ({"n_dust": 300, "n_hairs": 20}, "tif"),
+}
+
+
+def main(dpis, repeats=3, fmt="tif", variants=None, rows=19):
+    spec = PlateSpec(rows=rows, cols=rows, orientation_mark=(0, 1))     # site 0,1 unmarked: the flow refuses a plate of unknown orientation
+    for dpi, name, kw, fmt in [(d, n, kw, f) for d in dpis for n, (kw, f) in (variants or {"": ({}, fmt)}).items()]:
         with tempfile.TemporaryDirectory() as tmp:
             t0 = time.perf_counter()
-            r = render_plate_image(1, spec, ImageOptions(dpi=dpi, jpeg_quality=None))
+            r = render_plate_image(1, spec, ImageOptions(dpi=dpi, **kw))
             paths = save_plate_image(tmp, r, fmt=fmt)
             t_render = time.perf_counter() - t0
             walls, cpus, loads = [], [], []
@@ -63,7 +74,7 @@ def main(dpis, repeats=3, fmt="tif"):
             tc = np.array(r.truth["fiducials"]["col_px"])[ids]
             tr = np.array(r.truth["fiducials"]["row_px"])[ids]
             e = np.hypot(col - tc, row - tr)
-            print(f"{dpi:5.0f} dpi {r.pixels.shape[1]} x {r.pixels.shape[0]} px ({fmt}, rendered in {t_render:.1f} s): "
+            print(f"{name:10s} {dpi:5.0f} dpi {r.pixels.shape[1]} x {r.pixels.shape[0]} px ({fmt}, rendered in {t_render:.1f} s): "
                   f"{s['n_detected']}/{s['n_expected']} marks, centre error RMS {np.sqrt(np.mean(e ** 2)):.4f} px "
                   f"(max {e.max():.3f} px) = {np.sqrt(np.mean(e ** 2)) * px * 1000:.2f} um; whole command median "
                   f"{np.median(walls):.1f} s (of {repeats}: {', '.join(f'{w:.1f}' for w in walls)}), "
@@ -72,4 +83,14 @@ def main(dpis, repeats=3, fmt="tif"):
 
 
 if __name__ == "__main__":
-    main([float(a) for a in sys.argv[1:]] or [1200.0])
+    args = sys.argv[1:]
+    n_rows = 19
+    if "--rows" in args:
+        i = args.index("--rows")
+        n_rows = int(args[i + 1])
+        del args[i:i + 2]
+    if "--variants" in args:
+        args.remove("--variants")
+        main([float(a) for a in args] or [1200.0], repeats=1, variants=VARIANTS, rows=n_rows)
+    else:
+        main([float(a) for a in args] or [1200.0])

@@ -25,7 +25,7 @@ def cmd_scan(args) -> int:
                                                               else args.rotation_hint_deg),
                                         "orientation": args.orientation, "mirror": args.mirror,
                                         "pixel_size_mm": (float("nan") if args.pixel_size_mm is None
-                                                          else args.pixel_size_mm)},
+                                                          else args.pixel_size_mm), "view": args.view},
                                progress=say, **run_options(args))
     s = res.summary
     say(f"orientation {s['in_plane_rotation_deg']:.1f} deg{' mirrored' if s['mirrored'] else ''} "
@@ -74,6 +74,7 @@ def cmd_render_scan(args) -> int:
 
 
 def cmd_render_scan_image(args) -> int:
+    from markcal.fixtures.plate_camera import CameraOptions, render_camera_image
     from markcal.fixtures.plate_image import MATERIALS, ImageOptions, render_plate_image, save_plate_image
     from markcal.stages.plate import PlateSpec
 
@@ -87,9 +88,18 @@ def cmd_render_scan_image(args) -> int:
                      pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
     opts = ImageOptions(dpi=args.dpi, rotation_deg=args.rotation_deg, mirror=args.mirror, material=args.material,
                         bits=args.bits, rgb=args.rgb, jpeg_quality=args.jpeg_quality, n_dust=args.dust)
-    say(f"rendering a {args.dpi:g} dpi image of a {args.rows} x {args.cols} plate, seed {args.seed}")
-    r = render_plate_image(args.seed, spec, opts)
-    save_plate_image(args.out, r, fmt=args.format, dpi_tags=not args.no_dpi)
+    if args.camera:
+        if not (0 <= args.tilt_deg < 30 and 1 <= args.focal_mm <= 1000):
+            raise MarkcalError(f"--tilt-deg must be within 0..30 and --focal-mm within 1..1000 (got {args.tilt_deg:g}, "
+                               f"{args.focal_mm:g})")
+        cam = CameraOptions(focal_mm=args.focal_mm, tilt_deg=args.tilt_deg, k1=args.k1, k2=args.k2)
+        say(f"rendering a camera image ({args.tilt_deg:g} deg tilt, {args.dpi:g} dpi at the plate centre) of a "
+            f"{args.rows} x {args.cols} plate, seed {args.seed}")
+        r = render_camera_image(args.seed, spec, opts, cam)
+    else:
+        say(f"rendering a {args.dpi:g} dpi image of a {args.rows} x {args.cols} plate, seed {args.seed}")
+        r = render_plate_image(args.seed, spec, opts)
+    save_plate_image(args.out, r, fmt=args.format, dpi_tags=not (args.no_dpi or args.camera))
     print(os.path.abspath(args.out))
     return 0
 
@@ -114,6 +124,9 @@ def register(sub, render_sub) -> None:
                                   "or an image of the plate: .tif/.png/.jpg (flatbed, grey or RGB, 8/16 bit)")
     sc.add_argument("--pixel-size-mm", type=float, default=None,
                     help="images: pixel size on the plate (default: from the file's dpi tags; refused when absent)")
+    sc.add_argument("--view", default="auto", choices=["auto", "flatbed"],
+                    help="images: auto refuses an image whose marks show perspective (a camera view); flatbed takes "
+                         "the view as flat (a plate marked with no lens correction can look like perspective)")
     sc.add_argument("--plate", required=True, help="plate spec (PLATE.toml)")
     sc.add_argument("--out", required=True, help="output folder")
     sc.add_argument("--validation", action="store_true", help="label the report as a validation (post-calibration) scan")
@@ -153,13 +166,20 @@ def register(sub, render_sub) -> None:
     rs.add_argument("--quiet", action="store_true")
     rs.set_defaults(func=cmd_render_scan)
 
-    ri = render_sub.add_parser("scan-image", help="flatbed image of a galvo-marked plate, with truth")
+    ri = render_sub.add_parser("scan-image", help="flatbed or camera image of a galvo-marked plate, with truth")
     ri.add_argument("--seed", type=int, default=0)
     ri.add_argument("--out", required=True)
     ri.add_argument("--rows", type=int, default=19)
     ri.add_argument("--cols", type=int, default=19)
     ri.add_argument("--pitch-mm", type=float, default=None)
-    ri.add_argument("--dpi", type=float, default=1200.0, help="flatbed resolution (600-2400 typical)")
+    ri.add_argument("--dpi", type=float, default=1200.0,
+                    help="flatbed resolution (600-2400 typical); with --camera, the pixel's footprint at the plate centre")
+    ri.add_argument("--camera", action="store_true",
+                    help="a pinhole camera over the plate (tilt, lens distortion, vignetting), written with no dpi")
+    ri.add_argument("--tilt-deg", type=float, default=3.0, help="--camera: tilt of the optical axis")
+    ri.add_argument("--focal-mm", type=float, default=35.0, help="--camera: focal length (3.45 um sensor pixels)")
+    ri.add_argument("--k1", type=float, default=-0.05, help="--camera: radial distortion k1 (normalised coordinates)")
+    ri.add_argument("--k2", type=float, default=0.01, help="--camera: radial distortion k2")
     ri.add_argument("--rotation-deg", type=float, default=None, help="in-plane turn (default: random +-5)")
     ri.add_argument("--mirror", action="store_true", help="plate face down on the glass")
     ri.add_argument("--material", default="anodised", help="anodised (bright marks) or paper (dark marks)")

@@ -42,8 +42,20 @@ class PlateImage:
     inverted: bool
 
 
+def _focal_text(focal, make, model) -> str | None:
+    """'focal length 35 mm, Canon EOS 5D' from EXIF values (a rational may come as a pair), or None."""
+    try:
+        f = float(focal[0]) / float(focal[1]) if isinstance(focal, tuple) else float(focal)
+    except (TypeError, ValueError, ZeroDivisionError, IndexError):
+        return None
+    if not (np.isfinite(f) and f > 0):
+        return None
+    who = " ".join(str(v).strip("\0 ") for v in (make, model) if v)
+    return f"focal length {f:g} mm" + (f", {who}" if who else "")
+
+
 def _read_pixels(path: str, ext: str) -> tuple:
-    """Pixels as an array and the resolution as (dpi_x, dpi_y) or None."""
+    """Pixels as an array, the resolution as (dpi_x, dpi_y) or None, and the camera the EXIF names or None."""
     if ext in (".tif", ".tiff"):
         import tifffile
         try:
@@ -51,6 +63,9 @@ def _read_pixels(path: str, ext: str) -> tuple:
                 page = tf.pages[0]
                 arr = page.asarray()
                 tags = page.tags
+                exif = tags["ExifTag"].value if "ExifTag" in tags else {}
+                camera = _focal_text(exif.get("FocalLength") if isinstance(exif, dict) else None,
+                                     *(tags[k].value if k in tags else None for k in ("Make", "Model")))
                 dpi = None
                 if "XResolution" in tags and "YResolution" in tags:
                     unit = tags["ResolutionUnit"].value if "ResolutionUnit" in tags else 2
@@ -60,18 +75,23 @@ def _read_pixels(path: str, ext: str) -> tuple:
                         dpi = (xr[0] / xr[1] * per, yr[0] / yr[1] * per)
         except (OSError, ValueError, tifffile.TiffFileError, IndexError, KeyError) as exc:
             raise MarkcalError(f"cannot read TIFF ({exc})") from None
-        return arr, dpi
+        return arr, dpi, camera
     from PIL import Image, UnidentifiedImageError
     Image.MAX_IMAGE_PIXELS = 400_000_000
     try:
         with Image.open(path) as im:
             dpi = im.info.get("dpi")
+            try:        # a damaged EXIF block says nothing about a camera; the pixels may still be fine
+                exif = im.getexif()
+                camera = _focal_text(exif.get_ifd(0x8769).get(0x920A), exif.get(0x010F), exif.get(0x0110))
+            except (OSError, ValueError, TypeError, KeyError, SyntaxError):
+                camera = None
             if im.mode in ("P", "PA", "LA", "RGBA", "CMYK", "YCbCr", "1"):
                 im = im.convert("RGB")
             arr = np.asarray(im)
     except (OSError, ValueError, UnidentifiedImageError, Image.DecompressionBombError) as exc:
         raise MarkcalError(f"cannot read image ({exc})") from None
-    return arr, (tuple(float(v) for v in dpi) if dpi else None)
+    return arr, (tuple(float(v) for v in dpi) if dpi else None), camera
 
 
 def _grey(arr: np.ndarray) -> tuple:
@@ -94,21 +114,28 @@ def _grey(arr: np.ndarray) -> tuple:
     return (arr if arr.dtype in (np.uint8, np.uint16) else arr.astype(np.float32)), bits
 
 
-def read_plate_image(path, pixel_size_mm: float | None = None) -> PlateImage:
+def read_plate_image(path, pixel_size_mm: float | None = None, refuse_camera: bool = True) -> PlateImage:
     """Read a plate image (TIFF, PNG, JPEG), grey or RGB, 8/16 bit.
 
     Parameters
     ----------
     pixel_size_mm : float, optional
         Side of a pixel on the plate (mm); default: from the file's resolution.
+    refuse_camera : bool
+        Refuse a file whose EXIF gives a lens focal length (a camera took it).
 
     Raises
     ------
     MarkcalError
-        Unreadable file, unknown pixel size, unsupported layout.
+        Unreadable file, a camera's image, unknown pixel size, unsupported layout.
     """
     path, ext = existing_file(path)
-    arr, dpi = _read_pixels(path, ext)
+    arr, dpi, camera = _read_pixels(path, ext)
+    if camera and refuse_camera:
+        raise MarkcalError(f"the image was taken through a camera lens (EXIF: {camera}): markcal cannot tell a "
+                           "camera's perspective and lens distortion from the galvo's on one image of the marked "
+                           "plate: image the plate on a flatbed scanner or measure it with a 3D scanner (--view "
+                           "flatbed takes the image as a flat view)")
     if dpi is not None:     # PNG stores pixels per metre: 1200 dpi comes back as 1199.998
         dpi = tuple(float(np.rint(d)) if abs(d - np.rint(d)) < 0.02 else float(d) for d in dpi)
     if pixel_size_mm is not None:
@@ -177,3 +204,105 @@ def flat_plane() -> Plane:
     """The image plane as the plate plane: (u, v) -> (u, v, 0)."""
     return Plane(origin_mm=np.zeros(3), normal=np.array([0.0, 0.0, 1.0]), e_u=np.array([1.0, 0.0, 0.0]),
                  e_v=np.array([0.0, 1.0, 0.0]), rms_mm=0.0, inlier_fraction=1.0, threshold_mm=0.0)
+
+
+#: a flat (flatbed-like) view: opposite edges of the fitted mark grid agree in length within this
+#: fraction. A galvo's own field gives up to 0.10 % on a 19 x 19 plate (200 rendered machines at any turn);
+#: a camera tilted 1 deg whose view spans +-0.2 rad gives up to 0.7 % (2 tan(tilt) x half-extent / distance).
+MAX_KEYSTONE = 0.003
+#: the limit when the pixel size comes from the file's own scanner resolution tag (cameras write none, or a
+#: 72/96 dpi screen default that is refused): above the 1.5 % a raw, uncorrected galvo field shows on the
+#: two real EZCAD tables, so a flatbed image of a plate marked without lens correction is taken; a camera
+#: tilted more than about 3 deg is still refused
+MAX_KEYSTONE_SCANNER_DPI = 0.02
+#: ``--view``: "auto" refuses an image with more keystone (a camera); "flatbed" takes it as a flat view
+VIEWS = ("auto", "flatbed")
+
+
+@dataclass(frozen=True)
+class ViewGeometry:
+    """How far the detected grid is from a flat, orthographic view.
+
+    ``keystone``: the largest relative length difference of opposite edges of
+    the grid's outline under the best homography (0 for any similarity or
+    affine map); ``perspective_mm``: the largest shift the homography's
+    perspective terms cause at the outline's corners beyond the best affine map.
+    """
+
+    keystone: float
+    perspective_mm: float
+    n_marks: int
+
+
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares (normalised DLT) homography src -> dst, 3 x 3, H[2, 2] = 1."""
+    def norm(p):
+        c = p.mean(axis=0)
+        s = np.sqrt(2.0) / max(np.mean(np.linalg.norm(p - c, axis=1)), 1e-12)
+        return np.array([[s, 0, -s * c[0]], [0, s, -s * c[1]], [0, 0, 1.0]])
+    ts, td = norm(src), norm(dst)
+    a = np.c_[src, np.ones(len(src))] @ ts.T
+    b = np.c_[dst, np.ones(len(dst))] @ td.T
+    z, o = np.zeros((len(a), 3)), np.ones(len(a))
+    rows = np.vstack([np.c_[a, z, -b[:, :1] * a], np.c_[z, a, -b[:, 1:2] * a]])
+    h = np.linalg.svd(rows)[2][-1].reshape(3, 3)
+    h = np.linalg.inv(td) @ h @ ts
+    return h / h[2, 2]
+
+
+def _apply(h: np.ndarray, p: np.ndarray) -> np.ndarray:
+    q = np.c_[p, np.ones(len(p))] @ h.T
+    return q[:, :2] / q[:, 2:]
+
+
+def view_geometry(uv_mm: np.ndarray, pitch_mm: float) -> ViewGeometry:
+    """Perspective of the detected marks: homography from the ideal lattice to the detected centres.
+
+    Parameters
+    ----------
+    uv_mm : ndarray, shape (n, 2)
+        Detected mark centres (image mm).
+    pitch_mm : float
+        The plate's pitch.
+    """
+    from .register import lattice_coords
+    lat = lattice_coords(uv_mm, pitch_mm)
+    src = lat.k[lat.good] * pitch_mm
+    dst = np.asarray(uv_mm, float)[lat.good]
+    if len(src) < 8 or np.linalg.matrix_rank(src - src.mean(axis=0)) < 2:
+        return ViewGeometry(0.0, 0.0, int(len(src)))
+    return perspective_of(src, dst)
+
+
+def perspective_of(src_mm: np.ndarray, dst_mm: np.ndarray) -> ViewGeometry:
+    """Keystone and perspective shift of the best homography from ideal points to measured ones."""
+    src, dst = np.asarray(src_mm, float), np.asarray(dst_mm, float)
+    h = _homography(src, dst)
+    lo, hi = src.min(axis=0), src.max(axis=0)
+    corners = np.array([[lo[0], lo[1]], [hi[0], lo[1]], [hi[0], hi[1]], [lo[0], hi[1]]])
+    c = _apply(h, corners)
+    edge = np.linalg.norm(np.roll(c, -1, axis=0) - c, axis=1)          # bottom, right, top, left
+    keystone = max(abs(edge[0] / edge[2] - 1), abs(edge[1] / edge[3] - 1))
+    a_aff = np.linalg.lstsq(np.c_[src, np.ones(len(src))], _apply(h, src), rcond=None)[0]
+    persp = np.linalg.norm(c - np.c_[corners, np.ones(4)] @ a_aff, axis=1).max()
+    return ViewGeometry(float(keystone), float(persp), int(len(src)))
+
+def check_flat_view(uv_mm: np.ndarray, pitch_mm: float, refuse: bool = True,
+                    max_keystone: float = MAX_KEYSTONE) -> ViewGeometry:
+    """The view's perspective (``view_geometry``); refused above ``max_keystone`` when ``refuse``.
+
+    Raises
+    ------
+    MarkcalError
+        Keystone above ``max_keystone``: the message gives it and what to do.
+    """
+    g = view_geometry(uv_mm, pitch_mm)
+    if refuse and g.keystone > max_keystone:
+        raise MarkcalError(
+            f"the image shows perspective: opposite edges of the mark grid differ in length by "
+            f"{100 * g.keystone:.2f} % (keystone; the marks sit up to {g.perspective_mm:.2f} mm off a flat view; "
+            f"refused above {100 * max_keystone:.1f} %): a camera view? markcal cannot tell a camera's perspective "
+            "and lens distortion from the galvo's on one image of the marked plate: image the plate on a "
+            "flatbed scanner or measure it with a 3D scanner; if this is a flatbed image (a plate marked with "
+            "no lens correction can show up to 1.5 %), give --view flatbed")
+    return g

@@ -138,3 +138,34 @@ def test_galvo_model_option_closes_the_loop_and_exports(tmp_path):
     w = np.array([[10.0, -20.0]])
     assert np.allclose(src.model(w), res.grid_model.model(w), atol=1e-9)
     assert os.path.exists(paths["report.html"])
+
+
+@pytest.mark.parametrize("rot,off", [(30.0, 25.0), (-120.0, -35.0)])
+def test_hint_resolves_a_mirrored_plate(tmp_path, rot, off):
+    # the hint is the direction of the plate's x axis in the scan frame; the renderer's mirror negates the
+    # scanner x, so a plate rendered at rot has its x axis at 180 - rot
+    r, res = _scan(tmp_path, PLAIN, 42, rot, True, mirror="yes", rotation_hint_deg=180.0 - rot + off)
+    assert _index_error_mm(res, r).max() <= RIGHT_MM
+    s = res.summary
+    assert s["mirrored"] is True and s["orientation_method"] == "rotation hint"
+    assert (s["in_plane_rotation_deg"] - (180.0 - rot) + 180.0) % 360.0 - 180.0 == pytest.approx(0.0, abs=0.2)
+
+
+def test_hint_on_a_mirrored_plate_needs_the_mirror_stated(tmp_path):
+    r = render_scan(43, PLAIN, ScanOptions(rotation_deg=30.0, mirror=True))
+    cloud, _ = save_render(r, str(tmp_path))
+    with pytest.raises(MarkcalError, match=r"mirrored and not.*give --mirror yes or no"):
+        run_scan(cloud, PLAIN, FlowOptions(mirror="auto", rotation_hint_deg=150.0))
+
+
+def test_face_down_flatbed_image_with_a_hint(tmp_path):
+    from markcal.fixtures.plate_image import ImageOptions, render_plate_image, save_plate_image
+    spec = PlateSpec(rows=5, cols=5)
+    r = render_plate_image(44, spec, ImageOptions(dpi=600, rotation_deg=100.0, mirror=True))
+    paths = save_plate_image(str(tmp_path), r)
+    res = run_scan(paths["image"], spec, FlowOptions(mirror="yes", rotation_hint_deg=180.0 - 100.0 - 20.0))
+    f, t = res.fiducials, r.truth["fiducials"]
+    e = np.hypot(f["x_scanner_mm"] / r.pixel_mm - 0.5 - np.array(t["col_px"])[f["id"]],
+                 f["y_scanner_mm"] / r.pixel_mm - 0.5 - np.array(t["row_px"])[f["id"]])
+    assert res.summary["n_detected"] == 25 and res.summary["mirrored"] is True
+    assert np.sqrt(np.mean(e ** 2)) <= 0.1                      # pixels: the right ids, not a mirror's

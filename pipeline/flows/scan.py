@@ -19,8 +19,9 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.io import read_cloud
 from markcal.stages.plane import Plane, fit_plane, from_plane
 from markcal.stages.plate import PlateSpec, nominal_grid
-from markcal.stages.plate_image import (IMAGE_EXTS, check_image_size, coarse_raster, flat_plane, image_raster,
-                                        read_plate_image)
+from markcal.stages.plate_image import (IMAGE_EXTS, MAX_KEYSTONE, MAX_KEYSTONE_SCANNER_DPI, VIEWS,
+                                        check_flat_view, check_image_size, coarse_raster, flat_plane,
+                                        image_raster, read_plate_image)
 from markcal.stages.project import Raster, project
 from markcal.stages.galvo_fit import KINDS, choose_model
 from markcal.stages.register import Rigid2D, lattice_coords, rigid_fit, robust_rigid_fit
@@ -62,6 +63,7 @@ class ScanOptions:
     orientation: str = "auto"        # no hint, no mark: "auto" (galvo model or refusal) or "upright" (hint 0)
     mirror: str = "no"               # the measurement seen from the back: "no", "yes", "auto"
     pixel_size_mm: float | None = None   # images: overrides the file's resolution tags
+    view: str = "auto"               # images: "auto" refuses perspective (a camera), "flatbed" takes it as flat
 
 
 @dataclass(frozen=True)
@@ -122,7 +124,7 @@ def run_scan(cloud_path, spec: PlateSpec, options: ScanOptions | None = None, pr
     try:
         if file_ext(cloud_path) in IMAGE_EXTS:
             say("reading image")
-            image = read_plate_image(cloud_path, opt.pixel_size_mm)
+            image = read_plate_image(cloud_path, opt.pixel_size_mm, refuse_camera=opt.view == "auto")
             return _run_image(image, str(cloud_path), spec, opt, say, t0)
         say("reading cloud")
         cloud = read_cloud(cloud_path)
@@ -213,6 +215,9 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
                       0.5 * spec.pitch_mm)]
     say("identifying rows, columns and the plate's orientation")
     uv_all = fit.uv_mm[idx]
+    if "image_pixel_mm" in extra:       # a camera's perspective is refused, not calibrated (docs/scan.md)
+        limit = MAX_KEYSTONE if extra["image_pixel_size_from"] == "--pixel-size-mm" else MAX_KEYSTONE_SCANNER_DPI
+        extra["image_keystone"] = check_flat_view(uv_all, spec.pitch_mm, opt.view == "auto", limit).keystone
     r_all, c_all, q_all = nominal_grid(spec)
     choice = _orientation(uv_all, spec, q_all, opt)
     cand = choice.chosen
@@ -292,7 +297,8 @@ def _finish(fit, edges, raster, plane, source, spec, opt, say, t0, extra, previe
         "rms_50_mm": stats["inner_50"].get("rms_mm"), "max_50_mm": stats["inner_50"].get("max_mm"),
         **fitted["summary"],
         **extra,
-        "in_plane_rotation_deg": -tf.angle_deg,
+        # direction of the plate's x axis in the scan frame (mirrored too): what --rotation-hint-deg takes
+        "in_plane_rotation_deg": float(np.degrees(np.arctan2(tf.rotation[0, 1], tf.rotation[0, 0]))),
         "mirrored": bool(cand.mirrored),
         "orientation_method": choice.method,
         "orientation_margin": choice.margin if np.isfinite(choice.margin) else None,
@@ -441,8 +447,11 @@ def scan_options(options: dict) -> ScanOptions:
     hint = None if hint is None or not np.isfinite(float(hint)) else float(hint)     # NaN: no hint
     px = options.get("pixel_size_mm")
     px = None if px is None or not np.isfinite(float(px)) else float(px)              # NaN: from the file
+    view = str(options.get("view", "auto"))
+    if view not in VIEWS:
+        raise MarkcalError(f"unknown view {view!r} (known: {', '.join(VIEWS)})")
     return ScanOptions(seed=int(options["seed"]), validation=bool(options["validation"]), model=model,
-                       rotation_hint_deg=hint, orientation=orient, mirror=mirror, pixel_size_mm=px)
+                       rotation_hint_deg=hint, orientation=orient, mirror=mirror, pixel_size_mm=px, view=view)
 
 
 def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
@@ -455,7 +464,7 @@ FLOW = FlowDescriptor(
     claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
     options={"seed": 0, "validation": False, "no_report": False, "model": "ols-rbf",
              "rotation_hint_deg": float("nan"), "orientation": "auto", "mirror": "no",
-             "pixel_size_mm": float("nan")},
+             "pixel_size_mm": float("nan"), "view": "auto"},
     key_figures=(Figure("kind", "kind"), Figure("n_detected", "fiducials detected"),
                  Figure("n_expected", "fiducials expected"), Figure("rms_mm", "scan deviation RMS", "mm"),
                  Figure("max_mm", "deviation max", "mm"), Figure("cv_rmse_mm", "RBF CV RMSE", "mm")),
