@@ -36,12 +36,13 @@ BASE_COLUMNS = ("name", "group", "flow", "status", "reason", "failed_checks", "c
 def read_batch_config(path) -> dict:
     """Read batch.toml: ``[<flow>]`` option defaults and ``[<flow>.tolerance]`` limits.
 
-    Returns flow name -> {"options": dict, "tolerances": dict}, defaults filled in.
+    Returns flow name -> {"options": dict, "tolerances": dict}: options with defaults filled in, and
+    batch.toml's limits, which override each input's default limits (the flow's, or a scan's per purpose).
     Unknown flows, options and tolerance keys are refused (typos must not pass).
     """
     flows = all_flows()
-    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()},
-                            {n: f.descriptor.tolerances for n, f in flows.items()})
+    # the jobs carry batch.toml's limits only: each input's defaults depend on its summary (a scan's purpose)
+    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()}, {})
 
 
 # ------------------------------------------------------------------ discovery
@@ -174,10 +175,11 @@ def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = 
                 reused: bool = False) -> dict:
     """The small result record of one input (a row of summary.csv)."""
     entry = get_flow(job["flow"]).descriptor
-    checks, failed = evaluate(summary, job["tolerances"]) if summary is not None else ("", "")
+    limits = {**entry.default_tolerances(summary), **job["tolerances"]} if summary is not None else {}
+    checks, failed = evaluate(summary, limits) if summary is not None else ("", "")    # as the report's verdict
     if summary is None:
         status = "error"
-    elif not job["tolerances"]:
+    elif not limits:
         status = "done"
     else:
         status = "fail" if failed else "pass"

@@ -136,7 +136,7 @@ def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict
     """
     check_tolerance_keys(name, summary, tolerances or {}, input_path if not isinstance(input_path, list) else None)
     d = get_flow(name).descriptor
-    limits = {**d.tolerances, **(tolerances or {})}
+    limits = {**d.default_tolerances(summary), **(tolerances or {})}
     v = evaluate(summary, limits)
     labels = "; ".join(d.figure(k[4:]).caption for k in sorted(limits))
     summary.update(verdict=v.status, checks=v.checks, check_labels=labels, failed_checks=v.failed,

@@ -65,12 +65,23 @@ def _rel(path, out_dir):
     return os.path.relpath(path, out_dir).replace(os.sep, "/")
 
 
+def _judged_keys(rec) -> list:
+    """Summary keys a record was checked against, failed ones first (from ``failed_checks`` and ``checks``)."""
+    keys = [c.split(" ")[0] for c in (rec.get("failed_checks") or "").split("; ") + (rec.get("checks") or "").split("; ")
+            if c.strip()]
+    return list(dict.fromkeys(keys))
+
+
 def _main_figure(rec, flows):
+    """The figure that decides this input's verdict (its first failed check, else its first check; a scan's
+    calibration plate: the predicted residual, a validation plate: its deviation), else the flow's first trend."""
     e = flows.get(rec["flow"])
-    if e is None or not e.trends:
+    if e is None:
         return "", None
-    k, caption = e.trends[0]
-    return caption, rec.get(k)
+    names = dict(zip(e.key_figures, e.captions))
+    names.update(dict(e.trends))
+    k = next((k for k in _judged_keys(rec) if k in rec), e.trends[0][0] if e.trends else None)
+    return (names.get(k, k), rec.get(k)) if k else ("", None)
 
 
 def _readable_checks(text: str, e) -> str:
@@ -81,6 +92,22 @@ def _readable_checks(text: str, e) -> str:
     names.update(dict(e.trends))
     text = re.sub(r"[A-Za-z_][A-Za-z0-9_]*", lambda m: names.get(m.group(0), m.group(0)), text)
     return text.replace("<=", "≤").replace(">=", "≥")
+
+
+def _tolerance_line(rs, shown) -> str:
+    """The limits the inputs of one flow were judged on; one line per set (a scan's calibration and validation
+    plates are judged on different figures)."""
+    sets = {}
+    for r in rs:
+        if r["checks"]:
+            sets.setdefault(r["checks"], []).append(str(r.get("kind") or ""))
+    if not sets:
+        return "<p>tolerance: none (status done)</p>"
+    if len(sets) == 1:
+        return f"<p>tolerance: {esc(_readable_checks(next(iter(sets)), shown))}</p>"
+    items = "".join(f"<li>{esc(', '.join(sorted(set(k for k in kinds if k))) or 'some inputs')}: "
+                    f"{esc(_readable_checks(c, shown))}</li>" for c, kinds in sets.items())
+    return f"<p>tolerance, by the input's purpose:</p><ul>{items}</ul>"
 
 
 def _summary_table(records, flows, out_dir) -> str:
@@ -140,12 +167,18 @@ def _trend_plot(flow, key, label, records) -> str:
     groups = sorted({rs[i]["group"] for i in keep})
     markers = "osD^v<>ph*"
     colours = {"pass": "#2e7d32", "fail": "#d9342b", "done": "#3b7dd8"}
+    # an input not judged on this figure (e.g. a calibration plate on its uncorrected deviation) is drawn hollow
+    judged = {i: key in _judged_keys(rs[i]) for i in keep}
+    some_judged = any(judged.values())
     for gi, g in enumerate(groups):
         for st, c in colours.items():
-            idx = [i for i in keep if rs[i]["group"] == g and rs[i]["status"] == st]
-            if idx:
-                ax.scatter(idx, [vals[i] for i in idx], c=c, marker=markers[gi % len(markers)], s=36,
-                           label=f"{g or '(top)'}: {STATUS_TEXT[st]}", zorder=3)
+            for on in (True, False):
+                idx = [i for i in keep if rs[i]["group"] == g and rs[i]["status"] == st
+                       and (judged[i] == on or not some_judged)]
+                if idx and (on or some_judged):
+                    ax.scatter(idx, [vals[i] for i in idx], marker=markers[gi % len(markers)], s=36, zorder=3,
+                               facecolors=c if on else "none", edgecolors=c, linewidths=1.2,
+                               label=f"{g or '(top)'}: {STATUS_TEXT[st]}" + ("" if on else ", not judged on this"))
     for g in groups:                     # a line joins the inputs of one group (machine) only
         gi_keep = [i for i in keep if rs[i]["group"] == g]
         ax.plot(gi_keep, [vals[i] for i in gi_keep], color="#999", lw=0.8, zorder=2)
@@ -157,9 +190,11 @@ def _trend_plot(flow, key, label, records) -> str:
     ax.set_xlabel("input, in time order (input file modification time)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
+    hollow = " Hollow: an input whose verdict does not use this figure (a scan plate of the other purpose)." \
+        if some_judged and not all(judged.values()) else ""
     return img(png_b64(fig), f"{flow} {key} trend",
                f"<b>{esc(flow)}</b>: {esc(label)} per input in time order; colour = status, marker = group "
-               "(sub-folder, e.g. the machine); dashed line = the pass/fail limit.")
+               f"(sub-folder, e.g. the machine); dashed line = the pass/fail limit.{hollow}")
 
 
 def batch_index_html(result, out_dir) -> str:
@@ -183,8 +218,7 @@ def batch_index_html(result, out_dir) -> str:
     for f, shown in result.flows.items():
         rs = [r for r in recs if r["flow"] == f]
         parts.append(f"<h2>{esc(f)}: key figures</h2>")
-        checks = next((r["checks"] for r in rs if r["checks"]), "")
-        parts.append(f"<p>tolerance: {esc(_readable_checks(checks, shown)) if checks else 'none (status done)'}</p>")
+        parts.append(_tolerance_line(rs, shown))
         parts.append(_flow_table(list(shown.key_figures), rs, f, list(shown.captions)))
         for key, label in shown.trends:
             parts.append(_trend_plot(f, key, label, rs))
