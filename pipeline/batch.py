@@ -165,24 +165,15 @@ def is_done(job) -> bool:
 
 # ------------------------------------------------------------------ records and pass/fail
 
-def evaluate(summary: dict, tolerances: dict) -> tuple:
-    """``(checks, failed)`` of a summary against its limits (see :func:`markcal.stages.verdict.evaluate`)."""
-    v = evaluate_verdict(summary, tolerances)
-    return v.checks, v.failed
-
-
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
                 reused: bool = False) -> dict:
     """The small result record of one input (a row of summary.csv)."""
     entry = get_flow(job["flow"]).descriptor
-    limits = {**entry.default_tolerances(summary), **job["tolerances"]} if summary is not None else {}
-    checks, failed = evaluate(summary, limits) if summary is not None else ("", "")    # as the report's verdict
     if summary is None:
-        status = "error"
-    elif not limits:
-        status = "done"
-    else:
-        status = "fail" if failed else "pass"
+        status, checks, failed = "error", "", ""
+    else:                                       # as the report's verdict: the input's defaults, then batch.toml's
+        v = evaluate_verdict(summary, {**entry.default_tolerances(summary), **job["tolerances"]})
+        status, checks, failed = {"pass": "pass", "fail": "fail"}.get(v.status, "done"), v.checks, v.failed
     report = os.path.join(job["out_dir"], "report.html")
     rec = {"name": job["name"], "group": job["group"], "flow": job["flow"], "status": status,
            "reason": reason, "failed_checks": failed, "checks": checks, "input": job["input"],

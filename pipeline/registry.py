@@ -138,7 +138,7 @@ def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict
     d = get_flow(name).descriptor
     limits = {**d.default_tolerances(summary), **(tolerances or {})}
     v = evaluate(summary, limits)
-    labels = "; ".join(d.figure(k[4:]).caption for k in sorted(limits))
+    labels = "; ".join(d.figure(k[4:]).caption for k in limits)
     summary.update(verdict=v.status, checks=v.checks, check_labels=labels, failed_checks=v.failed,
                    **provenance(input_path, spec_path, context))
 

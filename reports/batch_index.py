@@ -76,7 +76,7 @@ def _main_figure(rec, flows):
     """The figure that decides this input's verdict (its first failed check, else its first check; a scan's
     calibration plate: the predicted residual, a validation plate: its deviation), else the flow's first trend."""
     e = flows.get(rec["flow"])
-    if e is None:
+    if e is None or rec["status"] == "error":
         return "", None
     names = dict(zip(e.key_figures, e.captions))
     names.update(dict(e.trends))
@@ -156,7 +156,8 @@ def _limit(records, key):
     return tol
 
 
-def _trend_plot(flow, key, label, records) -> str:
+def _trend_plot(flow, key, label, records, kinds=()) -> str:
+    """One trend figure; ``kinds``: the flow's key figures, the first text-valued one splits the lines."""
     rs = sorted([r for r in records if r["status"] != "error"], key=lambda r: (r["input_mtime"], r["name"]))
     vals = [r.get(key) for r in rs]
     keep = [i for i, v in enumerate(vals) if isinstance(v, (int, float)) and np.isfinite(v)]
@@ -179,9 +180,16 @@ def _trend_plot(flow, key, label, records) -> str:
                     ax.scatter(idx, [vals[i] for i in idx], marker=markers[gi % len(markers)], s=36, zorder=3,
                                facecolors=c if on else "none", edgecolors=c, linewidths=1.2,
                                label=f"{g or '(top)'}: {STATUS_TEXT[st]}" + ("" if on else ", not judged on this"))
-    for g in groups:                     # a line joins the inputs of one group (machine) only
-        gi_keep = [i for i in keep if rs[i]["group"] == g]
+    # a line joins the inputs of one group (machine) and one kind (a scan's purpose, a servo trace's kind) only
+    kind_key = next((k for k in kinds if any(isinstance(rs[i].get(k), str) for i in keep)), None)
+    for g, kd in sorted({(rs[i]["group"], str(rs[i].get(kind_key, ""))) for i in keep}):
+        gi_keep = [i for i in keep if rs[i]["group"] == g and str(rs[i].get(kind_key, "")) == kd]
         ax.plot(gi_keep, [vals[i] for i in gi_keep], color="#999", lw=0.8, zorder=2)
+    if all(float(vals[i]).is_integer() for i in keep):        # counts: whole-number axis from 0
+        from matplotlib.ticker import MaxNLocator
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        top = max([vals[i] for i in keep] + list(_limit(rs, key).values()))
+        ax.set_ylim(-0.5, max(top, 1) + 0.5)
     for op, lim in _limit(rs, key).items():
         ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {'≤' if op == '<=' else '≥' if op == '>=' else op} {lim:g}")
     ax.set_xticks(keep)
@@ -221,7 +229,7 @@ def batch_index_html(result, out_dir) -> str:
         parts.append(_tolerance_line(rs, shown))
         parts.append(_flow_table(list(shown.key_figures), rs, f, list(shown.captions)))
         for key, label in shown.trends:
-            parts.append(_trend_plot(f, key, label, rs))
+            parts.append(_trend_plot(f, key, label, rs, shown.key_figures))
     if result.ignored:
         parts.append("<h2>Files not recognised</h2><p>No flow claims these files; they were not processed:</p><ul>"
                      + "".join(f"<li><code>{esc(p)}</code></li>" for p in result.ignored) + "</ul>")

@@ -109,7 +109,7 @@ def test_purpose_decides_the_default_verdict(small_render, small_result, tmp_pat
     assert ">PASS<" in html[:html.index("<h2")] and "predicted residual RMS after correction" in html
     assert main([*cal, "--out", str(tmp_path / "v"), "--purpose", "validation"]) == 4
     v = json.loads((tmp_path / "v" / "summary.json").read_text())
-    assert v["verdict"] == "fail" and v["failed_checks"].startswith("max_mm ") and "; rms_mm " in v["failed_checks"]
+    assert v["verdict"] == "fail" and v["failed_checks"].startswith("rms_mm ") and "; max_mm " in v["failed_checks"]
     assert build_parser().parse_args([*cal, "--out", "x", "--validation"]).purpose == "validation"   # old spelling
     grid = GridCorrection.from_nodes(small_result.grid_xy_mm, small_result.grid_dxy_mm)
     val = render_scan(202, dataclasses.replace(SMALL, purpose="validation"), ScanOptions(z_convention="height"),
@@ -119,7 +119,7 @@ def test_purpose_decides_the_default_verdict(small_render, small_result, tmp_pat
     assert main(["scan", str(tmp_path / "val" / "cloud.npy"), "--plate", str(tmp_path / "val" / "plate.toml"),
                  "--out", str(tmp_path / "vv"), "--quiet", "--no-report"]) == 0
     vv = json.loads((tmp_path / "vv" / "summary.json").read_text())
-    assert vv["kind"] == "validation" and vv["verdict"] == "pass" and vv["checks"] == "max_mm <= 0.252; rms_mm <= 0.071"
+    assert vv["kind"] == "validation" and vv["verdict"] == "pass" and vv["checks"] == "rms_mm <= 0.071; max_mm <= 0.252"
 
 
 def test_deterministic(small_files, small_result):
@@ -142,7 +142,7 @@ def test_cli_render_and_scan_write_documented_outputs(tmp_path):
     # it is judged on what the correction achieves, so it passes (exit 0)
     assert s["kind"] == "calibration" and s["rms_mm"] > 0.1
     assert p.returncode == 0 and s["verdict"] == "pass", p.stderr
-    assert s["checks"] == "cv_rmse_mm <= 0.047; n_missing <= 0; predicted_residual_rms_mm <= 0.071"
+    assert s["checks"] == "predicted_residual_rms_mm <= 0.071; cv_rmse_mm <= 0.047; n_missing <= 0"
     assert p.stdout.strip().endswith("report.html") and "fiducials" in p.stderr
     # the renderer leaves site 0,1 unmarked by default, so the plate's orientation is known
     assert "orientation_mark = [0, 1]" in (d / "plate.toml").read_text()
