@@ -180,7 +180,7 @@ def indents_report_html(res) -> str:
     s = res.summary
     t = res.indents
     parts = []
-    verdict = (f"{s['n_imprints']} imprints in {s['n_files_ok']} of {s['n_files']} file(s); mean diameter "
+    verdict = (f"{s['n_imprints']} imprint{'s' if s['n_imprints'] != 1 else ''} in {s['n_files_ok']} of {s['n_files']} file(s); mean diameter "
                f"{num(s['mean_diameter_um'], 'µm')}"
                + (f"; {s['n_out_of_tolerance']} outside ±{s['tolerance_um'] * 1000:.0f} nm of the nominal"
                   if s["n_out_of_tolerance"] is not None else "; no array spec, so no nominal size to judge against")
@@ -193,7 +193,7 @@ def indents_report_html(res) -> str:
             ("missing", esc(", ".join(s["missing"])) or "none"),
             (("mean / σ diameter", f"{num(s['mean_diameter_um'], 'µm')} / {num(s['sd_diameter_um'], 'µm')}")
              if s["n_imprints"] > 1 else ("diameter", num(s["mean_diameter_um"], "µm"))),
-            ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm")),
+            ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm") if not s["nominal_inferred"] else ""),
             ("mean depth", num(s["mean_depth_nm"], "nm")), ("mean H/D", num(s["mean_hd"], "")),
             ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
             ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
