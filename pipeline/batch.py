@@ -28,7 +28,7 @@ INDEX_FILES = ("index.html", "summary.csv", "summary.json")
 
 #: record columns common to every flow, in summary.csv order
 BASE_COLUMNS = ("name", "group", "flow", "status", "reason", "failed_checks", "checks", "input", "spec",
-                "out_dir", "report", "input_mtime", "runtime_s", "reused")
+                "out_dir", "report", "input_mtime", "data_time", "runtime_s", "reused")
 
 
 # ------------------------------------------------------------------ configuration
@@ -180,6 +180,7 @@ def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = 
            "spec": job.get("spec") or "", "out_dir": job["out_dir"],
            "report": report if summary is not None and os.path.exists(report) else "",
            "input_mtime": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(input_mtime(job, with_spec=False))),
+           "data_time": (summary or {}).get("data_time") or "",
            "runtime_s": runtime_s, "reused": reused}
     for k in (entry.key_names if entry else ()):
         v = None if summary is None else summary.get(k)

@@ -61,6 +61,12 @@ def _cell(v):
     return f'<td class="l" data-v="{esc(v)}">{esc(v)}</td>'
 
 
+def _input_time(rec) -> str:
+    """When the input was measured: the data's own timestamp (``data_time``) if its file has one, else the
+    file's modification time."""
+    return rec.get("data_time") or rec["input_mtime"]
+
+
 def _rel(path, out_dir):
     return os.path.relpath(path, out_dir).replace(os.sep, "/")
 
@@ -133,14 +139,14 @@ def _summary_table(records, flows, out_dir) -> str:
 
 def _flow_table(keys, records, flow, captions=None) -> str:
     head = ["input", "group", "status", "input time", *(captions or keys), "runtime, s", "reused"]
-    tips = ["", "", "", "", *keys, "runtime_s", "reused"]
+    tips = ["", "", "", "the data's own timestamp, else the file's modification time", *keys, "runtime_s", "reused"]
     ths = "".join(f'<th class="s{" l" if i < 2 else ""}" title="{esc(t)}">{esc(h)}</th>'
                   for i, (h, t) in enumerate(zip(head, tips)))
     rows = []
     for r in records:
         rows.append(f'<tr class="st-{r["status"]}" data-status="{r["status"]}">'
                     f'<td class="l" data-v="{esc(r["name"])}">{esc(r["name"])}</td>{_cell(r["group"])}'
-                    f'<td class="l" data-v="{r["status"]}">{STATUS_TEXT[r["status"]]}</td>{_cell(r["input_mtime"])}'
+                    f'<td class="l" data-v="{r["status"]}">{STATUS_TEXT[r["status"]]}</td>{_cell(_input_time(r))}'
                     + "".join(_cell(r.get(k)) for k in keys) + _cell(r["runtime_s"]) + _cell(r["reused"]) + "</tr>")
     return (f'<div class="wide"><table class="sortable" id="flow-{esc(flow)}"><thead><tr>{ths}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></div>')
@@ -158,7 +164,7 @@ def _limit(records, key):
 
 def _trend_plot(flow, key, label, records, kinds=()) -> str:
     """One trend figure; ``kinds``: the flow's key figures, the first text-valued one splits the lines."""
-    rs = sorted([r for r in records if r["status"] != "error"], key=lambda r: (r["input_mtime"], r["name"]))
+    rs = sorted([r for r in records if r["status"] != "error"], key=lambda r: (_input_time(r), r["name"]))
     vals = [r.get(key) for r in rs]
     keep = [i for i, v in enumerate(vals) if isinstance(v, (int, float)) and np.isfinite(v)]
     if not keep:
@@ -195,7 +201,11 @@ def _trend_plot(flow, key, label, records, kinds=()) -> str:
     ax.set_xticks(keep)
     ax.set_xticklabels([drawable(rs[i]["name"].split("/")[-1]) for i in keep], rotation=60, ha="right", fontsize=7)
     ax.set_ylabel(label)
-    ax.set_xlabel("input, in time order (input file modification time)")
+    stamped = sum(bool(rs[i].get("data_time")) for i in keep)
+    ax.set_xlabel("input, in time order (" + ("the data's own timestamps" if stamped == len(keep) else
+                                              "file modification times" if not stamped else
+                                              f"the data's own timestamp for {stamped} of {len(keep)}, else the "
+                                              "file's modification time") + ")")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
     hollow = " Hollow: an input whose verdict does not use this figure (a scan plate of the other purpose)." \

@@ -43,3 +43,27 @@ def test_trend_draws_inputs_of_the_other_purpose_hollow():
     assert "Hollow: an input whose verdict does not use this figure" in html
     one = _trend_plot("scan", "rms_mm", "deviation RMS, mm", recs[1:], SCAN.key_figures)
     assert "<img" in one and "Hollow" not in one
+
+
+def test_input_time_is_the_datas_own_timestamp_when_there_is_one(tmp_path):
+    import numpy as np
+    import tifffile
+    from markcal.pipeline.registry import data_time
+    from markcal.reports.batch_index import _input_time
+    p = tmp_path / "a.tif"
+    tifffile.imwrite(p, np.zeros((4, 4), np.uint8), datetime="2024:03:05 14:15:16")
+    assert data_time(p) == "2024-03-05T14:15:16"
+    tifffile.imwrite(tmp_path / "b.tif", np.zeros((4, 4), np.uint8), datetime=False)
+    assert data_time(tmp_path / "b.tif") is None and data_time(tmp_path) is None
+    (tmp_path / "c.tif").write_bytes(b"II*\0garbage")
+    assert data_time(tmp_path / "c.tif") is None                       # unreadable header: no timestamp
+    rec = _rec("a", "calibration", CAL)
+    assert _input_time(rec) == "a" and _input_time(dict(rec, data_time="2024-03-05T14:15:16")) == "2024-03-05T14:15:16"
+
+
+def test_sem_image_time_from_its_fei_metadata():
+    """The real SEM micrograph (../shared/realdata, vyastreb/sem2surface, BSD-3-Clause) says it was taken
+    on 09/12/2023 at 05:00:10 PM in its FEI metadata."""
+    from test_afm_readers import _real
+    from markcal.pipeline.registry import data_time
+    assert data_time(_real("sem_vickers/Indent_20230912_7kV_spot4.5_FOV100um_multiBSE_A_05.tif")) == "2023-09-12T17:00:10"
