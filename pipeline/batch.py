@@ -28,7 +28,7 @@ INDEX_FILES = ("index.html", "summary.csv", "summary.json")
 
 #: record columns common to every flow, in summary.csv order
 BASE_COLUMNS = ("name", "group", "flow", "status", "reason", "failed_checks", "checks", "input", "spec",
-                "out_dir", "report", "input_mtime", "runtime_s", "reused")
+                "out_dir", "report", "input_mtime", "data_time", "runtime_s", "reused")
 
 
 # ------------------------------------------------------------------ configuration
@@ -36,12 +36,13 @@ BASE_COLUMNS = ("name", "group", "flow", "status", "reason", "failed_checks", "c
 def read_batch_config(path) -> dict:
     """Read batch.toml: ``[<flow>]`` option defaults and ``[<flow>.tolerance]`` limits.
 
-    Returns flow name -> {"options": dict, "tolerances": dict}, defaults filled in.
+    Returns flow name -> {"options": dict, "tolerances": dict}: options with defaults filled in, and
+    batch.toml's limits, which override each input's default limits (the flow's, or a scan's per purpose).
     Unknown flows, options and tolerance keys are refused (typos must not pass).
     """
     flows = all_flows()
-    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()},
-                            {n: f.descriptor.tolerances for n, f in flows.items()})
+    # the jobs carry batch.toml's limits only: each input's defaults depend on its summary (a scan's purpose)
+    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()}, {})
 
 
 # ------------------------------------------------------------------ discovery
@@ -164,29 +165,22 @@ def is_done(job) -> bool:
 
 # ------------------------------------------------------------------ records and pass/fail
 
-def evaluate(summary: dict, tolerances: dict) -> tuple:
-    """``(checks, failed)`` of a summary against its limits (see :func:`markcal.stages.verdict.evaluate`)."""
-    v = evaluate_verdict(summary, tolerances)
-    return v.checks, v.failed
-
-
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
                 reused: bool = False) -> dict:
     """The small result record of one input (a row of summary.csv)."""
     entry = get_flow(job["flow"]).descriptor
-    checks, failed = evaluate(summary, job["tolerances"]) if summary is not None else ("", "")
     if summary is None:
-        status = "error"
-    elif not job["tolerances"]:
-        status = "done"
-    else:
-        status = "fail" if failed else "pass"
+        status, checks, failed = "error", "", ""
+    else:                                       # as the report's verdict: the input's defaults, then batch.toml's
+        v = evaluate_verdict(summary, {**entry.default_tolerances(summary), **job["tolerances"]})
+        status, checks, failed = {"pass": "pass", "fail": "fail"}.get(v.status, "done"), v.checks, v.failed
     report = os.path.join(job["out_dir"], "report.html")
     rec = {"name": job["name"], "group": job["group"], "flow": job["flow"], "status": status,
            "reason": reason, "failed_checks": failed, "checks": checks, "input": job["input"],
            "spec": job.get("spec") or "", "out_dir": job["out_dir"],
            "report": report if summary is not None and os.path.exists(report) else "",
            "input_mtime": time.strftime("%Y-%m-%dT%H:%M:%S", time.localtime(input_mtime(job, with_spec=False))),
+           "data_time": (summary or {}).get("data_time") or "",
            "runtime_s": runtime_s, "reused": reused}
     for k in (entry.key_names if entry else ()):
         v = None if summary is None else summary.get(k)

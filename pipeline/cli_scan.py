@@ -1,6 +1,7 @@
 """``markcal scan`` and ``markcal render scan``."""
 from __future__ import annotations
 
+import argparse
 import os
 
 import numpy as np
@@ -19,7 +20,7 @@ def cmd_scan(args) -> int:
 
     say = progress(args.quiet)
     res, paths = run_and_write("scan", args.cloud, args.out, spec_path=args.plate,
-                               options={"seed": args.seed, "validation": args.validation,
+                               options={"seed": args.seed, "purpose": args.purpose or "",
                                         "no_report": args.no_report, "model": args.model,
                                         "rotation_hint_deg": (float("nan") if args.rotation_hint_deg is None
                                                               else args.rotation_hint_deg),
@@ -48,7 +49,8 @@ def cmd_render_scan(args) -> int:
     say = progress(args.quiet)
     mark = _parse_mark(args.orientation_mark, args.rows, args.cols)
     spec = PlateSpec(rows=args.rows, cols=args.cols,
-                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark)
+                     pitch_mm=args.pitch_mm if args.pitch_mm else PlateSpec().pitch_mm, orientation_mark=mark,
+                     purpose="validation" if args.correction else "calibration")
     correction = None
     if args.correction:
         try:
@@ -129,7 +131,12 @@ def register(sub, render_sub) -> None:
                          "the view as flat (a plate marked with no lens correction can look like perspective)")
     sc.add_argument("--plate", required=True, help="plate spec (PLATE.toml)")
     sc.add_argument("--out", required=True, help="output folder")
-    sc.add_argument("--validation", action="store_true", help="label the report as a validation (post-calibration) scan")
+    sc.add_argument("--purpose", choices=["calibration", "validation"], default=None,
+                    help="calibration: a plate marked without correction, judged on what the correction will achieve "
+                         "(predicted residual, CV error, every mark found); validation: marked through the correction, "
+                         "judged on its deviation (default: the plate spec's [plate] purpose, else calibration)")
+    sc.add_argument("--validation", dest="purpose", action="store_const", const="validation",
+                    help=argparse.SUPPRESS)     # old spelling of --purpose validation
     sc.add_argument("--seed", type=int, default=0, help="seed of the random steps (RANSAC, CV folds)")
     sc.add_argument("--model", default="ols-rbf", choices=["ols-rbf", "physical+rbf", "rbf", "poly3", "auto"],
                     help="correction model: the paper's OLS RBF network (default), the galvo model of paper 004 "

@@ -14,7 +14,7 @@ from dataclasses import dataclass, fields, replace
 
 from markcal.stages.errors import MarkcalError
 from markcal.stages.limits import check_text_ends
-from markcal.stages.plate import PlateSpec
+from markcal.stages.plate import PURPOSES, PlateSpec
 
 
 def load_toml(path, what: str = "config file") -> dict:
@@ -156,6 +156,7 @@ PLATE_SCHEMA = {
     "galvo": {"d_mm": Key("float", _DEFAULT_PLATE.d_mm, positive=True, max=10_000.0, unit="mm"),
               "e_mm": Key("float", _DEFAULT_PLATE.e_mm, min=0.0, max=10_000.0, unit="mm")},
     "correction": {"grid_step_mm": Key("float", _DEFAULT_PLATE.grid_step_mm, min=1e-3, unit="mm")},
+    "plate": {"purpose": Key("str", _DEFAULT_PLATE.purpose, choices=PURPOSES)},
 }
 
 
@@ -165,7 +166,8 @@ MAX_CORRECTION_NODES = 1_000_000
 
 def read_plate_spec(path) -> PlateSpec:
     """Read a PLATE.toml (``[grid] rows cols pitch_mm``, required; ``[fiducial] ring_radii_mm``,
-    ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``; lengths in mm).
+    ``[galvo] d_mm e_mm``, ``[correction] grid_step_mm``, ``[plate] purpose`` (``calibration``: marked
+    without the correction; ``validation``: marked through it); lengths in mm).
 
     ``[fiducial] orientation_mark = [row, col]`` declares a grid site left
     unmarked, which tells the plate's orientation at any angle. An empty file,
@@ -176,7 +178,7 @@ def read_plate_spec(path) -> PlateSpec:
     if os.path.isfile(path):
         check_text_ends(_read_bytes(path), path)
     c = read_config(path, PLATE_SCHEMA, "plate spec")
-    spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"])
+    spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"], **c["plate"])
     hx, hy = spec.half_extent_mm
     nodes = (2 * math.ceil(hx / spec.grid_step_mm) + 1) * (2 * math.ceil(hy / spec.grid_step_mm) + 1)
     if nodes > MAX_CORRECTION_NODES:

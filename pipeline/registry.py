@@ -98,9 +98,34 @@ def sha256_of(path) -> str:
     return h.hexdigest()
 
 
+def data_time(path) -> str | None:
+    """The measurement's own timestamp, ISO ``YYYY-MM-DDTHH:MM:SS`` (instrument local time), when the file
+    carries one: a TIFF's FEI/Thermo ``[User] Date``/``Time`` or its ``DateTime`` tag (306); else None."""
+    import datetime
+    import os
+    if os.path.isdir(path) or os.path.splitext(os.fspath(path))[1].lower() not in (".tif", ".tiff"):
+        return None
+    try:
+        import tifffile
+        with tifffile.TiffFile(path) as tif:
+            user = (tif.fei_metadata or {}).get("User", {}) if tif.is_fei else {}
+            page = tif.pages.first
+            tag = page.tags.get(306)
+            for text, fmt in ((f"{user.get('Date', '')} {user.get('Time', '')}", "%m/%d/%Y %I:%M:%S %p"),
+                              (str(tag.value).strip() if tag is not None else "", "%Y:%m:%d %H:%M:%S")):
+                try:
+                    return datetime.datetime.strptime(text.strip(), fmt).strftime("%Y-%m-%dT%H:%M:%S")
+                except ValueError:
+                    continue
+    except Exception:  # noqa: BLE001  a timestamp is optional: an unreadable header just has none
+        return None
+    return None
+
+
 def provenance(input_path, spec_path=None, context: dict | None = None) -> dict:
     """Summary keys that make a result traceable: version, UTC date, command, inputs and their SHA-256,
-    and the user's ``machine``, ``lens``, ``operator``, ``note`` when given."""
+    the data's own timestamp (``data_time``) when the file has one, and the user's ``machine``, ``lens``,
+    ``operator``, ``note`` when given."""
     import datetime
     import os
     import sys
@@ -111,6 +136,9 @@ def provenance(input_path, spec_path=None, context: dict | None = None) -> dict:
            else " ".join(sys.argv),
            "input": "; ".join(os.path.abspath(p) for p in paths),
            "input_sha256": "; ".join(sha256_of(p) for p in paths)}
+    stamps = [t for t in (data_time(p) for p in paths) if t]
+    if stamps:
+        out["data_time"] = min(stamps)
     if spec_path:
         out.update(spec=os.path.abspath(spec_path), spec_sha256=sha256_of(spec_path))
     for k, v in (context or {}).items():
@@ -136,9 +164,9 @@ def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict
     """
     check_tolerance_keys(name, summary, tolerances or {}, input_path if not isinstance(input_path, list) else None)
     d = get_flow(name).descriptor
-    limits = {**d.tolerances, **(tolerances or {})}
+    limits = {**d.default_tolerances(summary), **(tolerances or {})}
     v = evaluate(summary, limits)
-    labels = "; ".join(d.figure(k[4:]).caption for k in sorted(limits))
+    labels = "; ".join(d.figure(k[4:]).caption for k in limits)
     summary.update(verdict=v.status, checks=v.checks, check_labels=labels, failed_checks=v.failed,
                    **provenance(input_path, spec_path, context))
 

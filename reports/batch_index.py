@@ -61,16 +61,33 @@ def _cell(v):
     return f'<td class="l" data-v="{esc(v)}">{esc(v)}</td>'
 
 
+def _input_time(rec) -> str:
+    """When the input was measured: the data's own timestamp (``data_time``) if its file has one, else the
+    file's modification time."""
+    return rec.get("data_time") or rec["input_mtime"]
+
+
 def _rel(path, out_dir):
     return os.path.relpath(path, out_dir).replace(os.sep, "/")
 
 
+def _judged_keys(rec) -> list:
+    """Summary keys a record was checked against, failed ones first (from ``failed_checks`` and ``checks``)."""
+    keys = [c.split(" ")[0] for c in (rec.get("failed_checks") or "").split("; ") + (rec.get("checks") or "").split("; ")
+            if c.strip()]
+    return list(dict.fromkeys(keys))
+
+
 def _main_figure(rec, flows):
+    """The figure that decides this input's verdict (its first failed check, else its first check; a scan's
+    calibration plate: the predicted residual, a validation plate: its deviation), else the flow's first trend."""
     e = flows.get(rec["flow"])
-    if e is None or not e.trends:
+    if e is None or rec["status"] == "error":
         return "", None
-    k, caption = e.trends[0]
-    return caption, rec.get(k)
+    names = dict(zip(e.key_figures, e.captions))
+    names.update(dict(e.trends))
+    k = next((k for k in _judged_keys(rec) if k in rec), e.trends[0][0] if e.trends else None)
+    return (names.get(k, k), rec.get(k)) if k else ("", None)
 
 
 def _readable_checks(text: str, e) -> str:
@@ -81,6 +98,22 @@ def _readable_checks(text: str, e) -> str:
     names.update(dict(e.trends))
     text = re.sub(r"[A-Za-z_][A-Za-z0-9_]*", lambda m: names.get(m.group(0), m.group(0)), text)
     return text.replace("<=", "≤").replace(">=", "≥")
+
+
+def _tolerance_line(rs, shown) -> str:
+    """The limits the inputs of one flow were judged on; one line per set (a scan's calibration and validation
+    plates are judged on different figures)."""
+    sets = {}
+    for r in rs:
+        if r["checks"]:
+            sets.setdefault(r["checks"], []).append(str(r.get("kind") or ""))
+    if not sets:
+        return "<p>tolerance: none (status done)</p>"
+    if len(sets) == 1:
+        return f"<p>tolerance: {esc(_readable_checks(next(iter(sets)), shown))}</p>"
+    items = "".join(f"<li>{esc(', '.join(sorted(set(k for k in kinds if k))) or 'some inputs')}: "
+                    f"{esc(_readable_checks(c, shown))}</li>" for c, kinds in sets.items())
+    return f"<p>tolerance, by the input's purpose:</p><ul>{items}</ul>"
 
 
 def _summary_table(records, flows, out_dir) -> str:
@@ -106,14 +139,14 @@ def _summary_table(records, flows, out_dir) -> str:
 
 def _flow_table(keys, records, flow, captions=None) -> str:
     head = ["input", "group", "status", "input time", *(captions or keys), "runtime, s", "reused"]
-    tips = ["", "", "", "", *keys, "runtime_s", "reused"]
+    tips = ["", "", "", "the data's own timestamp, else the file's modification time", *keys, "runtime_s", "reused"]
     ths = "".join(f'<th class="s{" l" if i < 2 else ""}" title="{esc(t)}">{esc(h)}</th>'
                   for i, (h, t) in enumerate(zip(head, tips)))
     rows = []
     for r in records:
         rows.append(f'<tr class="st-{r["status"]}" data-status="{r["status"]}">'
                     f'<td class="l" data-v="{esc(r["name"])}">{esc(r["name"])}</td>{_cell(r["group"])}'
-                    f'<td class="l" data-v="{r["status"]}">{STATUS_TEXT[r["status"]]}</td>{_cell(r["input_mtime"])}'
+                    f'<td class="l" data-v="{r["status"]}">{STATUS_TEXT[r["status"]]}</td>{_cell(_input_time(r))}'
                     + "".join(_cell(r.get(k)) for k in keys) + _cell(r["runtime_s"]) + _cell(r["reused"]) + "</tr>")
     return (f'<div class="wide"><table class="sortable" id="flow-{esc(flow)}"><thead><tr>{ths}</tr></thead>'
             f'<tbody>{"".join(rows)}</tbody></table></div>')
@@ -129,8 +162,9 @@ def _limit(records, key):
     return tol
 
 
-def _trend_plot(flow, key, label, records) -> str:
-    rs = sorted([r for r in records if r["status"] != "error"], key=lambda r: (r["input_mtime"], r["name"]))
+def _trend_plot(flow, key, label, records, kinds=()) -> str:
+    """One trend figure; ``kinds``: the flow's key figures, the first text-valued one splits the lines."""
+    rs = sorted([r for r in records if r["status"] != "error"], key=lambda r: (_input_time(r), r["name"]))
     vals = [r.get(key) for r in rs]
     keep = [i for i, v in enumerate(vals) if isinstance(v, (int, float)) and np.isfinite(v)]
     if not keep:
@@ -140,26 +174,45 @@ def _trend_plot(flow, key, label, records) -> str:
     groups = sorted({rs[i]["group"] for i in keep})
     markers = "osD^v<>ph*"
     colours = {"pass": "#2e7d32", "fail": "#d9342b", "done": "#3b7dd8"}
+    # an input not judged on this figure (e.g. a calibration plate on its uncorrected deviation) is drawn hollow
+    judged = {i: key in _judged_keys(rs[i]) for i in keep}
+    some_judged = any(judged.values())
     for gi, g in enumerate(groups):
         for st, c in colours.items():
-            idx = [i for i in keep if rs[i]["group"] == g and rs[i]["status"] == st]
-            if idx:
-                ax.scatter(idx, [vals[i] for i in idx], c=c, marker=markers[gi % len(markers)], s=36,
-                           label=f"{g or '(top)'}: {STATUS_TEXT[st]}", zorder=3)
-    for g in groups:                     # a line joins the inputs of one group (machine) only
-        gi_keep = [i for i in keep if rs[i]["group"] == g]
+            for on in (True, False):
+                idx = [i for i in keep if rs[i]["group"] == g and rs[i]["status"] == st
+                       and (judged[i] == on or not some_judged)]
+                if idx and (on or some_judged):
+                    ax.scatter(idx, [vals[i] for i in idx], marker=markers[gi % len(markers)], s=36, zorder=3,
+                               facecolors=c if on else "none", edgecolors=c, linewidths=1.2,
+                               label=f"{g or '(top)'}: {STATUS_TEXT[st]}" + ("" if on else ", not judged on this"))
+    # a line joins the inputs of one group (machine) and one kind (a scan's purpose, a servo trace's kind) only
+    kind_key = next((k for k in kinds if any(isinstance(rs[i].get(k), str) for i in keep)), None)
+    for g, kd in sorted({(rs[i]["group"], str(rs[i].get(kind_key, ""))) for i in keep}):
+        gi_keep = [i for i in keep if rs[i]["group"] == g and str(rs[i].get(kind_key, "")) == kd]
         ax.plot(gi_keep, [vals[i] for i in gi_keep], color="#999", lw=0.8, zorder=2)
+    if all(float(vals[i]).is_integer() for i in keep):        # counts: whole-number axis from 0
+        from matplotlib.ticker import MaxNLocator
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+        top = max([vals[i] for i in keep] + list(_limit(rs, key).values()))
+        ax.set_ylim(-0.5, max(top, 1) + 0.5)
     for op, lim in _limit(rs, key).items():
         ax.axhline(lim, color="#d9342b", ls="--", lw=1, label=f"limit {'≤' if op == '<=' else '≥' if op == '>=' else op} {lim:g}")
     ax.set_xticks(keep)
     ax.set_xticklabels([drawable(rs[i]["name"].split("/")[-1]) for i in keep], rotation=60, ha="right", fontsize=7)
     ax.set_ylabel(label)
-    ax.set_xlabel("input, in time order (input file modification time)")
+    stamped = sum(bool(rs[i].get("data_time")) for i in keep)
+    ax.set_xlabel("input, in time order (" + ("the data's own timestamps" if stamped == len(keep) else
+                                              "file modification times" if not stamped else
+                                              f"the data's own timestamp for {stamped} of {len(keep)}, else the "
+                                              "file's modification time") + ")")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=7, loc="best")
+    hollow = " Hollow: an input whose verdict does not use this figure (a scan plate of the other purpose)." \
+        if some_judged and not all(judged.values()) else ""
     return img(png_b64(fig), f"{flow} {key} trend",
                f"<b>{esc(flow)}</b>: {esc(label)} per input in time order; colour = status, marker = group "
-               "(sub-folder, e.g. the machine); dashed line = the pass/fail limit.")
+               f"(sub-folder, e.g. the machine); dashed line = the pass/fail limit.{hollow}")
 
 
 def batch_index_html(result, out_dir) -> str:
@@ -183,11 +236,10 @@ def batch_index_html(result, out_dir) -> str:
     for f, shown in result.flows.items():
         rs = [r for r in recs if r["flow"] == f]
         parts.append(f"<h2>{esc(f)}: key figures</h2>")
-        checks = next((r["checks"] for r in rs if r["checks"]), "")
-        parts.append(f"<p>tolerance: {esc(_readable_checks(checks, shown)) if checks else 'none (status done)'}</p>")
+        parts.append(_tolerance_line(rs, shown))
         parts.append(_flow_table(list(shown.key_figures), rs, f, list(shown.captions)))
         for key, label in shown.trends:
-            parts.append(_trend_plot(f, key, label, rs))
+            parts.append(_trend_plot(f, key, label, rs, shown.key_figures))
     if result.ignored:
         parts.append("<h2>Files not recognised</h2><p>No flow claims these files; they were not processed:</p><ul>"
                      + "".join(f"<li><code>{esc(p)}</code></li>" for p in result.ignored) + "</ul>")

@@ -27,7 +27,7 @@ DATA_FILES = (
 MODEL_LABELS = {"physical+rbf": "physical galvo + thin-plate spline", "rbf": "thin-plate spline alone",
                 "poly3": "cubic polynomial"}
 #: at most this many extrapolated nodes are listed one by one
-MAX_LISTED = 400
+MAX_LISTED = 20
 
 
 def _summary(result) -> str:
@@ -77,12 +77,29 @@ def _registration(result) -> str:
     return "".join(parts)
 
 
+#: the physical galvo model's parameters as a reader knows them: label, unit, factor from the stored value
+PARAM_LABELS = {"dd_mm": ("Δd, change of the X-mirror distance", "mm", 1.0),
+                "de_mm": ("Δe, change of the mirror spacing", "mm", 1.0),
+                "gain_x_err": ("X mirror gain error", "%", 100.0), "gain_y_err": ("Y mirror gain error", "%", 100.0),
+                "zero_x_rad": ("X mirror zero offset", "mrad", 1e3), "zero_y_rad": ("Y mirror zero offset", "mrad", 1e3),
+                "coupling_xy": ("coupling of Y's angle into X", "mrad/rad", 1e3),
+                "coupling_yx": ("coupling of X's angle into Y", "mrad/rad", 1e3),
+                "lens_k3_mm": ("lens radial term k3 at the lens radius", "mm", 1.0),
+                "lens_p1_mm": ("lens decentring term p1 at the lens radius", "mm", 1.0),
+                "lens_p2_mm": ("lens decentring term p2 at the lens radius", "mm", 1.0),
+                "tilt_x": ("plate tilt about the y axis", "°", 1.0), "tilt_y": ("plate tilt about the x axis", "°", 1.0)}
+
+
 def _physical(result) -> str:
     phys = result.model.physical
     if phys is None:
         return ""
-    rows = [("d (controller's nominal)", num(phys.d0_mm)), ("e (controller's nominal)", num(phys.e0_mm))]
-    rows += [(esc(k), f"{v:.6g}") for k, v in zip(PARAM_NAMES, phys.params)]
+    rows = [("d, X mirror to the plane centre (controller's nominal)", f"{phys.d0_mm:.2f} mm"),
+             ("e, between the mirror axes (controller's nominal)", f"{phys.e0_mm:.2f} mm")]
+    for k, v in zip(PARAM_NAMES, phys.params):
+        label, unit, factor = PARAM_LABELS[k]
+        v = np.degrees(np.arctan(v)) if unit == "°" else v * factor
+        rows.append((f"{esc(label)} <code>{esc(k)}</code>", f"{v:.4g} {unit}".strip()))
     return ("<h2>Physical galvo model</h2><p>Paper 004 eqs. 1–5: mirror distances, gains and zero offsets, "
             "axis coupling, lens terms at radius " + num(phys.radius_mm) + ", plate tilt.</p>"
             + table(["parameter", "value"], rows))
@@ -147,10 +164,11 @@ def _extrapolated_list(result) -> str:
     if not len(ex):
         return head
     order = ex[np.argsort(-result.grid_hull_mm[ex])][:MAX_LISTED]
-    rows = [(num(result.grid_xy_mm[i, 0]), num(result.grid_xy_mm[i, 1]), num(result.grid_hull_mm[i]),
-             num(result.grid_dxy_mm[i, 0]), num(result.grid_dxy_mm[i, 1])) for i in order]
-    more = f"<p>… and {len(ex) - MAX_LISTED} more (all in correction_grid.csv).</p>" if len(ex) > MAX_LISTED else ""
-    return head + table(["x (mm)", "y (mm)", "outside hull by", "dx", "dy"], rows, left_cols=0) + more
+    rows = [tuple(f"{v:.3f}" for v in (*result.grid_xy_mm[i], result.grid_hull_mm[i], *result.grid_dxy_mm[i]))
+            for i in order]
+    more = (f"<p>The {MAX_LISTED} furthest outside are listed; {len(ex) - MAX_LISTED} more are in "
+            "correction_grid.csv.</p>") if len(ex) > MAX_LISTED else ""
+    return head + table(["x, mm", "y, mm", "outside the hull by, mm", "dx, mm", "dy, mm"], rows, left_cols=0) + more
 
 
 def grid_report_html(result) -> str:

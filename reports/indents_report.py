@@ -180,18 +180,20 @@ def indents_report_html(res) -> str:
     s = res.summary
     t = res.indents
     parts = []
-    verdict = (f"{s['n_imprints']} imprints in {s['n_files_ok']} of {s['n_files']} file(s); mean diameter "
-               f"{num(s['mean_diameter_um'], 'µm')}; {s['n_out_of_tolerance']} outside "
-               f"±{s['tolerance_um'] * 1000:.0f} nm, "
-               f"{s['n_low_hd']} with H/D &lt; {s['min_hd']}.")
+    verdict = (f"{s['n_imprints']} imprint{'s' if s['n_imprints'] != 1 else ''} in {s['n_files_ok']} of {s['n_files']} file(s); mean diameter "
+               f"{num(s['mean_diameter_um'], 'µm')}"
+               + (f"; {s['n_out_of_tolerance']} outside ±{s['tolerance_um'] * 1000:.0f} nm of the nominal"
+                  if s["n_out_of_tolerance"] is not None else "; no array spec, so no nominal size to judge against")
+               + (f"; {s['n_low_hd']} with H/D &lt; {s['min_hd']}" if s["n_low_hd"] is not None else "") + ".")
     parts.append(f'<div class="verdict">{verdict}</div>')
     rows = [("files measured / failed", f"{s['n_files_ok']} / {s['n_files_failed']}"),
             ("kinds", esc(", ".join(s["kinds"]))),
             ("imprints found", num(s["n_imprints"], "")),
             ("expected (array spec)", num(s["n_expected"], "") if s["n_expected"] is not None else "– (no spec)"),
             ("missing", esc(", ".join(s["missing"])) or "none"),
-            ("mean / σ diameter", f"{num(s['mean_diameter_um'], 'µm')} / {num(s['sd_diameter_um'], 'µm')}"),
-            ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm")),
+            (("mean / σ diameter", f"{num(s['mean_diameter_um'], 'µm')} / {num(s['sd_diameter_um'], 'µm')}")
+             if s["n_imprints"] > 1 else ("diameter", num(s["mean_diameter_um"], "µm"))),
+            ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm") if not s["nominal_inferred"] else ""),
             ("mean depth", num(s["mean_depth_nm"], "nm")), ("mean H/D", num(s["mean_hd"], "")),
             ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
             ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
@@ -207,7 +209,8 @@ def indents_report_html(res) -> str:
         parts.append(f'<div class="note">failed: <code>{esc(os.path.basename(src))}</code>: {esc(msg)}</div>')
     err = t["diameter_um"] - t["nominal_um"]
     low = np.isfinite(t["hd_ratio"]) & (t["hd_ratio"] < s["min_hd"])
-    bad = np.flatnonzero((np.abs(err) > s["tolerance_um"]) | low)
+    off = np.abs(err) > s["tolerance_um"] if s["n_out_of_tolerance"] is not None else np.zeros(len(err), bool)
+    bad = np.flatnonzero(off | low)
     if len(bad):
         items = "".join(f"<li><code>{esc(t['file'][i])}</code> #{int(t['id'][i])}: diameter "
                         f"{num(t['diameter_um'][i], 'µm')} (nominal {num(t['nominal_um'][i], 'µm')}, error "
@@ -225,14 +228,15 @@ def indents_report_html(res) -> str:
             for i in range(len(z["n"]))]
     keep = [j for j in range(len(head)) if any(r[j] != "–" for r in body)] or list(range(len(head)))
     parts.append(table([head[j] for j in keep], [[r[j] for j in keep] for r in body]))   # no all-"–" columns
-    parts.append("<h2>Maps</h2>")
-    parts.append(_maps(res.files))
-    in3d = _render3d(res.files) + _profiles(res.files)
-    if in3d:                                        # AFM only: no empty section for micrographs
-        parts += ["<h2>One imprint in 3D and profiles</h2>", in3d]
-    parts.append("<h2>Positional error</h2>")
-    parts.append(_positions(res))
-    parts.append("<h2>Every imprint</h2>")
-    parts.append(_gallery(res.files))
+    from .indent_single_report import MAX_SINGLE
+    if all(len(f.imprints) <= MAX_SINGLE for f in res.files):   # the single-imprint view above shows them all
+        in3d = _render3d(res.files)
+        parts += ["<h2>The imprint in 3D</h2>", in3d] if in3d else []
+        parts += ["<h2>Positional error</h2>", _positions(res)] if s["n_expected"] is not None else []
+    else:
+        parts += ["<h2>Maps</h2>", _maps(res.files)]
+        in3d = _render3d(res.files) + _profiles(res.files)
+        parts += ["<h2>One imprint in 3D and profiles</h2>", in3d] if in3d else []   # AFM only: none for images
+        parts += ["<h2>Positional error</h2>", _positions(res), "<h2>Every imprint</h2>", _gallery(res.files)]
     parts.append(data_files_footer(DATA_FILES))
     return page("markcal indents report", parts, source=s["source"], summary=s)

@@ -113,8 +113,11 @@ def pmcal_report_html(result: PmcalResult) -> str:
     if result.truth:
         parts.append("<h2>Against the truth</h2>")
         keys = [k for k, _ in COMPARED] + ["pose_rot_urad"]
-        head = ["error"] + list(result.fits)
-        rows = [[esc(k)] + [num(result.fits[n].truth_errors[f"err_{k}"], "") for n in result.fits] for k in keys]
+        head = ["error against the truth"] + list(result.fits)
+        units = dict(COMPARED, pose_rot_urad="µrad")
+        labels = dict(PARAM_LABELS, pose_rot_urad="pose rotation")
+        rows = [[f"{esc(labels.get(k, k))} ({units[k]})"] + [num(result.fits[n].truth_errors[f"err_{k}"], "")
+                                                            for n in result.fits] for k in keys]
         for k, lab in (("landing_rms_um", "landing RMS (µm)"), ("landing_max_um", "landing max (µm)"),
                        ("depth_err_max_um", "depth error max (µm)")):
             rows.append([lab] + [num(result.fits[n].truth_errors[k], "") for n in result.fits])

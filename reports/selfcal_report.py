@@ -111,20 +111,21 @@ def _truth_tables(result) -> str:
     e, sol = result.errors, result.solution
     rows = []
     sd_xy = result.summary["predicted_sd_gxy_um"]
-    for name, key, unit, bound in (("E<sub>Gx</sub>", "gx_um", "µm", sd_xy), ("E<sub>Gy</sub>", "gy_um", "µm", sd_xy),
-                                   ("E<sub>Gθ</sub>", "gtheta_deg", "°", result.summary.get("predicted_sd_gtheta_deg"))):
+    # shown in nm and millidegrees: plain decimals, no exponents
+    for name, key, unit, bound in (("E<sub>Gx</sub>", "gx_um", "nm", sd_xy), ("E<sub>Gy</sub>", "gy_um", "nm", sd_xy),
+                                   ("E<sub>Gθ</sub>", "gtheta_deg", "m°", result.summary.get("predicted_sd_gtheta_deg"))):
         if key not in e:
             continue
         st = e[key]
-        rows.append([f"{name} ({unit})", f"{st['max']:.4e}", f"{st['min']:.4e}", f"{st['std']:.4e}",
-                     f"{bound:.4e}" if bound is not None else "–",
-                     f"{st['std'] / bound:.2f}" if bound else "–"])
+        rows.append([f"{name} ({unit})", *(f"{1e3 * st[k]:.2f}" for k in ("max", "min", "std")),
+                     f"{1e3 * bound:.2f}" if bound is not None else "not available",
+                     f"{st['std'] / bound:.2f}" if bound else "not available"])
     noise_th = result.truth.get("noise_theta_deg")
     ref = PAPER_GTHETA.get(f"{noise_th:g}") if noise_th is not None else None
     note = ""
     if ref:
-        note = (f"<p>Paper 001 reports, for the same noise level, E<sub>Gθ</sub> max {ref[0]:.4e}°, "
-                f"min {ref[1]:.4e}°, std {ref[2]:.4e}° (its E<sub>Gx</sub>, E<sub>Gy</sub> rows are lost "
+        note = (f"<p>Paper 001 reports, for the same noise level, E<sub>Gθ</sub> max {1e3 * ref[0]:.2f} m°, "
+                f"min {1e3 * ref[1]:.2f} m°, std {1e3 * ref[2]:.2f} m° (its E<sub>Gx</sub>, E<sub>Gy</sub> rows are lost "
                 "in the text; it states their std is below the noise).</p>")
     return ("<h2>Accuracy against truth (paper Tables 1–2 layout)</h2>"
             f"<p>Rendered session: measurement noise {num(result.truth.get('noise_xy_um'), 'µm')} and "
@@ -158,9 +159,9 @@ def selfcal_report_html(result) -> str:
     mis = []
     for v in range(4):
         if f"view{v}_rotation_deg" in s:
-            mis.append([f"view {v}", f"{s[f'view{v}_rotation_deg']:.5f}",
-                        f"{s.get(f'view{v}_offset_x_um', float('nan')):.3f}" if f"view{v}_offset_x_um" in s else "–",
-                        f"{s.get(f'view{v}_offset_y_um', float('nan')):.3f}" if f"view{v}_offset_y_um" in s else "–"])
+            off = ([f"{s[f'view{v}_offset_x_um']:.3f}", f"{s[f'view{v}_offset_y_um']:.3f}"]
+                   if f"view{v}_offset_x_um" in s else ["no XY readings", "(angle view)"])
+            mis.append([f"view {v}", f"{s[f'view{v}_rotation_deg']:.5f}", *off])
     parts += [
         "<h2>Summary</h2>",
         table(["quantity", "value"], [

@@ -77,6 +77,17 @@ def _readings_table(res):
             + table(head, rows))
 
 
+def _why_box(whys) -> str:
+    """The rows that differ from the paper by more than a third, grouped by reason (one item per reason)."""
+    if not whys:
+        return ""
+    by = {}
+    for what, why in whys:
+        by.setdefault(why, []).append(what)
+    items = "".join(f"<li>{esc(', '.join(whats))}: {why}</li>" for why, whats in by.items())
+    return f'<div class="warn"><b>Why ours differ from the paper by more than a third:</b><ul>{items}</ul></div>'
+
+
 def _fig8(res):
     cfg = res.config
     strokes = list(cfg.strokes_mm)
@@ -247,9 +258,9 @@ def _sim_parts(res):
                      _pct(rs), _pct(pp[5]) if pp else "–"])
         if pp:
             if _differs(ro, pp[2]):
-                whys.append(f"<li>{stroke:g} mm, overshoot: {_why_step(res, stroke, 'overshoot', ro, pp[2])}</li>")
+                whys.append((f"{stroke:g} mm overshoot", _why_step(res, stroke, 'overshoot', ro, pp[2])))
             if _differs(rs, pp[5]):
-                whys.append(f"<li>{stroke:g} mm, settling: {_why_step(res, stroke, 'settling', rs, pp[5])}</li>")
+                whys.append((f"{stroke:g} mm settling", _why_step(res, stroke, 'settling', rs, pp[5])))
     parts.append("<h2>Table 1: positioning performance</h2>" + table(
         ["stroke (mm)", "overshoot w/o CCA (µm)", "paper", "with CCA (µm)", "paper",
          "reduction", "paper reduction", "settling w/o CCA (ms)", "paper", "with CCA (ms)", "paper", "reduction",
@@ -257,9 +268,7 @@ def _sim_parts(res):
         rows) + f"<p>S-curve {cfg.velocity_mm_s / 1e3:g} m/s, {cfg.acceleration_mm_s2 / 1e3:g} m/s². Settling: from "
         f"the end of the reference ({'the TD output for the CCA' if cfg.reading.cca_origin == 'own' else 'the planned move'}) "
         f"until the position stays within ±{res.summary['settle_band_um']:g} µm of the target (– = not within the record).</p>")
-    if whys:
-        parts.append('<div class="warn"><b>Why ours differ from the paper by more than a third:</b><ul>'
-                     + "".join(whys) + "</ul></div>")
+    parts.append(_why_box(whys))
     parts.append(_fig8(res))
     # Table 2
     rows, whys = [], []
@@ -273,16 +282,14 @@ def _sim_parts(res):
                          num(c.mae_um, ""), pv(pp, 2), num(c.std_um, ""), pv(pp, 3), _pct(r), _pct(r_same),
                          _pct(pp[4]) if pp else "–"])
             if pp and _differs(r, pp[4]):
-                whys.append(f"<li>{amp:g} mm, {f:g} Hz: {_why_sine(res, f, r, pp[4])}</li>")
+                whys.append((f"{amp:g} mm at {f:g} Hz", _why_sine(res, f, r, pp[4])))
     parts.append("<h2>Table 2: sinusoidal tracking</h2>" + table(
         ["amplitude (mm)", "frequency (Hz)", "MAE w/o CCA (µm)", "paper", "STD w/o CCA (µm)", "paper",
          "MAE with CCA (µm)", "paper", "STD with CCA (µm)", "paper", "STD reduction",
          "STD reduction, baseline in the CCA's window", "paper STD reduction"], rows)
         + f"<p>Sinusoids over {_sine_record(cfg)}. The reduction is taken between the two rows, as the paper's "
         "table does; the next column takes the baseline over the same samples as the CCA.</p>")
-    if whys:
-        parts.append('<div class="warn"><b>Why ours differ from the paper by more than a third:</b><ul>'
-                     + "".join(whys) + "</ul></div>")
+    parts.append(_why_box(whys))
     parts.append(_fig9(res))
     parts.append(_fig10(res))
     parts.append("<h2>Stability of the repetitive controller (eq. 24)</h2>" + _fig_eq24(res))
@@ -388,11 +395,11 @@ def _trace_parts(res):
                  ["settling band", band], ["MAE / STD over the moves", f"{num(s['mae_um'], 'µm')} / {num(s['std_um'], 'µm')}"]]
         parts.append(table(["quantity", "value"], rows))
         stats = []
-        for key, label, scale, unit in (("rise_time", "rise time 10–90 %", 1e3, "ms"),
-                                        ("settling_time", f"settling time ({band})", 1e3, "ms"),
-                                        ("overshoot", "overshoot", 1.0, "µm"), ("overshoot", "overshoot", 1.0, "%"),
-                                        ("steady_state_error", "steady-state error", 1.0, "µm")):
-            u = "s" if unit == "ms" else ("pct" if unit == "%" else "um")
+        for key, label, scale, unit, u in (("rise_time", "rise time 10–90 %", 1e3, "ms", "s"),
+                                           ("settling_time", f"settling time ({band})", 1e3, "ms", "s"),
+                                           ("overshoot", "overshoot", 1.0, "µm", "um"),
+                                           ("overshoot", "overshoot", 1.0, "%", "pct"),
+                                           ("steady_state_error", "steady-state error", 1e3, "nm", "um")):
             cells = [num(s[f"{key}_{st}_{u}"] * scale, "") for st in ("mean", "std", "median", "min", "max")]
             if all(c == "–" for c in cells):           # no move reached it: say so instead of a row of "–"
                 cells = ["none within the log"] + [""] * 4
@@ -404,14 +411,14 @@ def _trace_parts(res):
         n = min(len(mc["move"]), MAX_MOVES_SHOWN)
         mrows = [[str(int(mc["move"][k])), num(mc["t_end_s"][k], ""), num(mc["stroke_mm"][k], ""),
                   _ms(mc["rise_time_s"][k]), _ms(mc["settling_time_s"][k]), num(mc["overshoot_um"][k], ""),
-                  num(mc["overshoot_pct"][k], ""), num(mc["steady_state_error_um"][k], ""), num(mc["mae_um"][k], "")]
+                  num(mc["overshoot_pct"][k], ""), num(1e3 * mc["steady_state_error_um"][k], ""), num(mc["mae_um"][k], "")]
                  for k in range(n)]
         parts.append("<h2>Moves</h2><p>Rise time: 10 % to 90 % of the stroke. Settling: from the reference's step "
                      "(the end of its move) until the position stays in the band. Overshoot: largest excursion "
                      "past the target. Steady-state error: mean of reference − position over the last 20 % of the "
                      "hold." + (f" The first {n} of {len(mc['move'])} moves; all are in moves.csv." if n < len(mc["move"]) else "")
                      + "</p>" + table(["move", "step at (s)", "stroke (mm)", "rise", "settling", "overshoot (µm)",
-                                       "overshoot (%)", "steady-state error (µm)", "MAE (µm)"], mrows))
+                                       "overshoot (%)", "steady-state error (nm)", "MAE (µm)"], mrows))
     else:
         rows += [["frequency", num(s["frequency_hz"], "Hz")], ["reference amplitude", num(s["amplitude_mm"], "mm")],
                  ["gain (position / reference amplitude)", f"{s['gain']:.5f}"],

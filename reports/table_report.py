@@ -9,10 +9,10 @@ __all__ = ["table_report_html", "structure_rows"]
 
 
 def _figure(t) -> str:
-    fig = new_figure(13, 5.0)
-    gs = fig.add_gridspec(1, 3, width_ratios=[1.5, 1, 1])      # the arrow map larger: its arrows stay visible
+    fig = new_figure(14, 6.0)
+    gs = fig.add_gridspec(1, 3, width_ratios=[2.2, 1, 1])      # the arrow map larger: its arrows stay visible
     ax = fig.add_subplot(gs[0, 0])
-    step = max(1, len(t.x_mm) // 12)
+    step = max(1, len(t.x_mm) // 8)                            # about 9 arrows a side, each up to ⅓ of their spacing
     gx, gy = np.meshgrid(t.x_mm, t.y_mm)
     pitch = float(np.diff(t.x_mm[::step]).mean()) if len(t.x_mm) > step else 1.0
     vmax = float(np.hypot(t.u, t.v).max())
@@ -32,7 +32,7 @@ def _figure(t) -> str:
         axc = fig.add_subplot(gs[0, 1 + i])
         lim = float(np.max(np.abs(comp))) or 1.0
         im = axc.imshow(comp, origin="lower", cmap="RdBu_r", vmin=-lim, vmax=lim, extent=extent)
-        fig.colorbar(im, ax=axc, shrink=0.8, label=t.unit)
+        fig.colorbar(im, ax=axc, fraction=0.046, pad=0.04, label=t.unit)     # as tall as the map
         axc.set_xlabel("x (mm)")
         axc.set_title(name, fontsize=9)
     fig.subplots_adjust(wspace=0.5)

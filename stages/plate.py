@@ -11,6 +11,10 @@ import numpy as np
 DEFAULT_ORIENTATION_MARK = (0, 1)
 
 
+#: what a marked plate is for: measuring the distortion, or checking a correction
+PURPOSES = ("calibration", "validation")
+
+
 @dataclass(frozen=True)
 class PlateSpec:
     """What the GLS was asked to mark, as in PLATE.toml.
@@ -27,6 +31,7 @@ class PlateSpec:
     e_mm: float = 22.0
     grid_step_mm: float = 1.0
     orientation_mark: tuple = ()     # (row, col) of a site left unmarked; () none
+    purpose: str = "calibration"     # "calibration": marked without correction; "validation": through it
 
     @property
     def mark_id(self):

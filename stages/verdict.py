@@ -39,10 +39,12 @@ def evaluate(summary: dict, tolerances: dict) -> Verdict:
     """Check a summary against ``max_<key>``/``min_<key>`` limits.
 
     A key the summary does not have fails ("missing"); a key whose value is
-    null/NaN is not applicable to this input and passes.
+    null/NaN is not applicable to this input (e.g. the overshoot of a trace
+    without moves) and is skipped. When no limit applies the status is
+    ``no tolerance``, not ``pass``: nothing was checked.
     """
-    checks, failed = [], []
-    for tk in sorted(tolerances):
+    checks, failed, applied = [], [], 0
+    for tk in tolerances:                   # in the given order: a flow's defaults list the deciding figure first
         lim = tolerances[tk]
         key, op = tk[4:], ("<=" if tk.startswith("max_") else ">=")
         checks.append(f"{key} {op} {lim:g}")
@@ -52,11 +54,12 @@ def evaluate(summary: dict, tolerances: dict) -> Verdict:
         v = summary[key]
         if v is None or (isinstance(v, float) and not math.isfinite(v)):
             continue
+        applied += 1
         if not _finite(v):
             failed.append(f"{key} not a number")
         elif (op == "<=" and v > lim) or (op == ">=" and v < lim):
             failed.append(f"{key} {v:.4g} {'>' if op == '<=' else '<'} {lim:g}")
-    status = NO_TOLERANCE if not tolerances else (FAIL if failed else PASS)
+    status = FAIL if failed else (PASS if applied else NO_TOLERANCE)
     return Verdict(status, "; ".join(checks), "; ".join(failed))
 
 

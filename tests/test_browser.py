@@ -107,7 +107,8 @@ def _first_screen(pw_page, url, selector):
 
 @pytest.fixture(scope="module")
 def single_reports(batch_out, tmp_path_factory):
-    """Reports of the single commands the batch does not run: export note, inspect, path, drift."""
+    """Reports of the single commands the batch does not run: scan, grid, indents, pmcal, export note,
+    inspect, path, drift (every image loads, no console error, the verdict on the first screen)."""
     d = tmp_path_factory.mktemp("single")
     stage = os.path.join(batch_out, "selfcal", "session01")
     assert main(["export", "a3200", stage, "--out", str(d / "stage.cal"), "--quiet", "--operator", "QA"]) == 0
@@ -116,7 +117,19 @@ def single_reports(batch_out, tmp_path_factory):
     assert main(["path", str(d / "job" / "job.csv"), "--out", str(d / "path"), "--quiet"]) in (0, 4)
     assert main(["render", "pmcal", "--seed", "1", "--pose-grid", "3", "--out", str(d / "pm"), "--quiet"]) == 0
     assert main(["drift", str(d / "pm" / "drift.csv"), "--out", str(d / "drift"), "--quiet"]) == 0
-    return {"export note": (d / "stage.cal.html", ".prov"), "inspect": (d / "ins" / "report.html", ".prov"),
+    # one small render of each other flow: a 5 x 5 plate, a measured grid, one AFM imprint, a pmcal session
+    assert main(["render", "scan", "--rows", "5", "--cols", "5", "--seed", "5", "--out", str(d / "plate"),
+                 "--formats", "npy", "--quiet"]) == 0
+    assert main(["scan", str(d / "plate" / "cloud.npy"), "--plate", str(d / "plate" / "plate.toml"),
+                 "--out", str(d / "scan"), "--quiet"]) == 0
+    assert main(["render", "grid", "--seed", "3", "--out", str(d / "g"), "--quiet"]) == 0
+    assert main(["grid", str(d / "g" / "measured.csv"), "--out", str(d / "grid"), "--quiet"]) == 0
+    assert main(["render", "afm", "--single", "--seed", "2", "--out", str(d / "afm"), "--quiet"]) == 0
+    assert main(["indents", str(d / "afm" / "heights.ibw"), "--out", str(d / "indents"), "--quiet"]) == 0
+    assert main(["pmcal", str(d / "pm"), "--out", str(d / "pmcal"), "--quiet"]) == 0
+    return {"scan": (d / "scan" / "report.html", "#verdict"), "grid": (d / "grid" / "report.html", "#verdict"),
+            "indents": (d / "indents" / "report.html", "#verdict"), "pmcal": (d / "pmcal" / "report.html", "#verdict"),
+            "export note": (d / "stage.cal.html", ".prov"), "inspect": (d / "ins" / "report.html", ".prov"),
             "path": (d / "path" / "report.html", "#verdict"), "drift": (d / "drift" / "report.html", ".prov"),
             "selfcal (batch)": (os.path.join(stage, "report.html"), "#verdict"),
             "servo (batch)": (os.path.join(batch_out, "servo", "trace01", "report.html"), "#verdict")}

@@ -125,7 +125,9 @@ def test_cli_render_and_scan_image(tmp_path):
     p = _cli(["scan", str(folder / "plate.jpg"), "--plate", str(folder / "plate.toml"), "--out",
               str(tmp_path / "out"), "--quiet", "--model", "physical+rbf", "--no-report"])
     s = json.loads((tmp_path / "out" / "summary.json").read_text())
-    assert p.returncode == (4 if s["rms_mm"] > 0.05 else 0), p.stderr        # 4: ran, out of the default tolerance
+    # a calibration plate (the default purpose) is judged on the correction: every mark found, CV RMSE <= 0.047 mm
+    # (the physical+rbf model has no predicted residual); its own deviation is what it measures
+    assert p.returncode == 0 and s["verdict"] == "pass" and s["checks"].endswith("n_missing <= 0"), p.stderr
     assert s["n_detected"] == 24 and s["model"] == "physical+rbf"      # site 0,1 left unmarked by default and s["image_pixel_size_from"].startswith("600 dpi")
 
 

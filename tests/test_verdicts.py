@@ -20,7 +20,8 @@ def test_evaluate_against_hand_made_summaries():
     assert (v.status, v.failed) == ("pass", "")
     v = evaluate(s, {"max_rms_mm": 0.03, "max_max_mm": 0.5})
     assert v.status == "fail" and v.failed == "rms_mm 0.04 > 0.03"
-    assert evaluate(s, {"max_nan_mm": 1.0}).status == "pass"          # not applicable to this input
+    assert evaluate(s, {"max_nan_mm": 1.0, "max_rms_mm": 0.05}).status == "pass"   # NaN: not applicable, skipped
+    assert evaluate(s, {"max_nan_mm": 1.0}).status == "no tolerance"                # nothing was checked
     assert evaluate(s, {"max_other": 1.0}).failed == "other missing"
 
 
@@ -113,3 +114,11 @@ def test_help_shows_defaults(capsys):
         main(["render", "grid", "--help"])
     out = capsys.readouterr().out
     assert "--rows ROWS" in out and "default: 9" in out and "-o OUT, --out OUT" in out
+
+
+def test_no_applicable_limit_is_no_tolerance_not_pass():
+    s = {"overshoot_um": None, "mae_um": 0.3}                 # a tracking trace has no moves to overshoot
+    v = evaluate(s, {"max_overshoot_um": 6.0})
+    assert (v.status, v.checks, v.failed) == ("no tolerance", "overshoot_um <= 6", "")
+    assert evaluate(s, {"max_overshoot_um": 6.0, "max_mae_um": 0.2}).status == "fail"
+    assert evaluate(s, {"max_mae_um": 0.5, "max_overshoot_um": 6.0}).checks == "mae_um <= 0.5; overshoot_um <= 6"

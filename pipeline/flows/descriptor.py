@@ -53,6 +53,9 @@ class FlowDescriptor:
         Summary keys shown in the batch index and summary.csv, with labels and units.
     tolerances : dict
         Default pass/fail limits, ``max_<key>`` / ``min_<key>`` -> number.
+    tolerances_by_kind : dict
+        Defaults that replace :attr:`tolerances` for a summary whose ``kind`` is a key here
+        (a scan's validation plate is judged on other figures than a calibration plate).
     trends : tuple of str
         Key figures plotted across inputs in the batch index (the first is the "main figure").
     cost : float
@@ -69,12 +72,17 @@ class FlowDescriptor:
     options: dict = field(default_factory=dict)
     key_figures: tuple = ()
     tolerances: dict = field(default_factory=dict)
+    tolerances_by_kind: dict = field(default_factory=dict)
     trends: tuple = ()
     cost: float = 1.0
 
     def find_spec(self, path):
         """The input's spec file: ``<stem>.toml`` beside it, else :attr:`spec_name` in its folder, else None."""
         return spec_beside(path, self.spec_name) if self.spec_name else None
+
+    def default_tolerances(self, summary: dict) -> dict:
+        """The default limits for this summary: :attr:`tolerances_by_kind` of its ``kind``, else :attr:`tolerances`."""
+        return dict(self.tolerances_by_kind.get(summary.get("kind"), self.tolerances))
 
     @property
     def key_names(self) -> tuple:

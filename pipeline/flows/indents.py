@@ -292,8 +292,10 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "max_abs_dx_um": float(np.nanmax(np.abs(t["dx_um"]))) if np.isfinite(t["dx_um"]).any() else None,
         "max_abs_dy_um": float(np.nanmax(np.abs(t["dy_um"]))) if np.isfinite(t["dy_um"]).any() else None,
         "tolerance_um": opt.tolerance_um, "min_hd": opt.min_hd,
-        "n_out_of_tolerance": int(np.sum(np.abs(err) > opt.tolerance_um)),
-        "n_low_hd": int(np.sum(np.isfinite(hd) & (hd < opt.min_hd))),
+        # not applicable (null, no verdict on it): without an array spec there is no nominal size to be out of;
+        # without depths (micrographs) no H/D
+        "n_out_of_tolerance": int(np.sum(np.abs(err) > opt.tolerance_um)) if spec is not None else None,
+        "n_low_hd": int(np.sum(np.isfinite(hd) & (hd < opt.min_hd))) if np.isfinite(hd).any() else None,
         "nominal_inferred": any(f.nominal_inferred for f in files),
         "pixel_um": files[0].pixel_um,
         "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
