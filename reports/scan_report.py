@@ -1,22 +1,19 @@
 """Self-contained HTML report of one scan flow result (paper 004 Figs. 4, 7-9, Table 1).
 
 Everything is inline: CSS in a ``<style>`` block, figures as base64 PNG. The
-module draws with matplotlib's Agg canvas (no pyplot state, nothing to close)
-and renders the point cloud with pyvista off-screen when OpenGL is there.
+module draws with matplotlib's Agg canvas (no pyplot state, nothing to close);
+the point cloud is projected with numpy (:mod:`markcal.reports.cloud_view`).
 It neither prints nor writes files; the caller stores the returned string.
 """
 from __future__ import annotations
 
-import base64
-import contextlib
-import io
 from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.colors import LogNorm
-from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
 
+from markcal.reports.cloud_view import IsoView, splat
 from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
@@ -172,6 +169,7 @@ def _histogram_figures(result) -> str:
                 "(Paper Fig. 8.)")]
 
     fig = new_figure(6.0, 3.6)
+    fig.subplots_adjust(bottom=0.16)           # the x label inside the canvas: one drawing pass (html.png_bytes)
     ax = fig.add_subplot(111)
     if len(mag):
         srt = np.sort(mag)
@@ -220,7 +218,9 @@ def _cv_figure(sel) -> str:
     cv_table = np.asarray(sel.table, float)
     spreads = np.asarray(sel.spreads_mm, float)
     goals = np.asarray(sel.goals_mm2, float)
-    fig = new_figure(7.4, 0.45 * len(spreads) + 1.6)
+    h_in = 0.45 * len(spreads) + 1.6
+    fig = new_figure(7.4, h_in)
+    fig.subplots_adjust(bottom=1.0 / h_in)     # room for the slanted goal labels inside the canvas
     ax = fig.add_subplot(111)
     cv_um = cv_table * 1000.0                     # the cell numbers and the colour bar in the same unit
     good = cv_um[np.isfinite(cv_um) & (cv_um > 0)]
@@ -364,49 +364,47 @@ def _image_section(result) -> tuple:
 
 
 def _render_3d(result) -> str:
-    try:
-        import pyvista as pv
-
-        xyz = np.asarray(result.preview_xyz_mm, np.float32)
-        inten = np.asarray(result.preview_intensity, np.float32)
-        if len(xyz) == 0:
-            raise ValueError("no preview points")
-        quiet = pv.vtk_verbosity("error") if hasattr(pv, "vtk_verbosity") else contextlib.nullcontext()
-        with quiet:
-            shot = _screenshot(pv, result, xyz, inten)
-        buf = io.BytesIO()
-        imsave(buf, np.asarray(shot), format="png")
-        b64 = base64.b64encode(buf.getvalue()).decode("ascii")
-        return img(b64, "point cloud",
-                    f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
-                    f"grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
-                    f"(60 mm long); tilt {esc(num(result.summary.get('plate_tilt_deg'), '°'))}.")
-    except Exception as exc:  # noqa: BLE001 - any render failure becomes a note
-        reason = f"{type(exc).__name__}: {exc}".strip()
-        return f'<div class="warn">3D render unavailable: {esc(reason[:300])}</div>'
+    xyz = np.asarray(result.preview_xyz_mm, float)
+    inten = np.asarray(result.preview_intensity, float)
+    if len(xyz) == 0:
+        return '<div class="warn">3D view unavailable: no preview points</div>'
+    fig = _cloud_figure(xyz, inten, np.asarray(result.plane.origin_mm, float), np.asarray(result.plane.normal, float))
+    return img(png_b64(fig), "point cloud",
+               f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
+               f"isometric view, grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
+               f"(60 mm long); tilt {esc(num(result.summary.get('plate_tilt_deg'), '°'))}.")
 
 
-def _screenshot(pv, result, xyz, inten) -> np.ndarray:
-    """Off-screen pyvista render of the cloud and the plate normal; (h, w, 3) uint8."""
-    plotter = pv.Plotter(off_screen=True, window_size=(900, 650))
-    try:
-        plotter.set_background("white")
-        cloud = pv.PolyData(xyz)
-        cloud["intensity"] = inten
-        lo, hi = np.percentile(inten, [1, 99])
-        plotter.add_mesh(cloud, scalars="intensity", cmap="gray", clim=(float(lo), float(max(hi, lo + 1e-6))),
-                         point_size=2, render_points_as_spheres=False, show_scalar_bar=True,
-                         scalar_bar_args={"title": "intensity", "color": "black"})
-        n = np.asarray(result.plane.normal, float)
-        o = np.asarray(result.plane.origin_mm, float)
-        arrow = pv.Arrow(start=o, direction=n, scale=60.0, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02)
-        plotter.add_mesh(arrow, color="red")
-        plotter.show_axes()
-        plotter.view_isometric()
-        plotter.camera.zoom(1.2)
-        return plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
+def _cloud_figure(xyz, inten, origin_mm, normal, arrow_mm: float = 60.0):
+    """Isometric picture of the cloud (:mod:`markcal.reports.cloud_view`) with the plate normal and axes."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    w_px, h_px = 860, 560
+    view = IsoView(np.vstack([xyz, origin_mm + arrow_mm * normal]), w_px, h_px)
+    pic = splat(view, xyz, inten, size_px=2)
+    lo, hi = np.percentile(inten, [1, 99])
+    hi = max(hi, lo + 1e-6)
+    fig = new_figure(w_px / 100 + 1.2, h_px / 100 + 0.3)
+    ax = fig.add_axes((0.0, 0.02, w_px / 100 / (w_px / 100 + 1.2), 0.96))
+    ax.imshow(np.ma.masked_invalid(pic), cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
+    ax.set_xlim(0, w_px)
+    ax.set_ylim(h_px, 0)
+    ax.set_axis_off()
+    (c0, r0), (c1, r1) = view.to_pixel(np.vstack([origin_mm, origin_mm + arrow_mm * normal]))
+    ax.annotate("", (c1, r1), (c0, r0), arrowprops={"arrowstyle": "-|>,head_length=0.9,head_width=0.45",
+                                                       "color": "#c00000", "lw": 3.0, "shrinkA": 0, "shrinkB": 0})
+    ax.plot([c0], [r0], "o", color="#c00000", ms=4)
+    base = np.array([45.0, h_px - 40.0])
+    for vec, lab, col in (((1, 0, 0), "x", "#e8603c"), ((0, 1, 0), "y", "#3aa655"), ((0, 0, 1), "z", "#1f4fd1")):
+        d = view.direction(vec) * 32
+        ax.annotate("", tuple(base + d), tuple(base), arrowprops={"arrowstyle": "-|>", "color": col, "lw": 1.6,
+                                                                "shrinkA": 0, "shrinkB": 0})
+        ax.text(*(base + 1.3 * d), lab, color=col, fontsize=9, ha="center", va="center", fontweight="bold")
+    cax = fig.add_axes((ax.get_position().x1 + 0.02, 0.2, 0.025, 0.6))
+    cb = fig.colorbar(ScalarMappable(Normalize(lo, hi), "gray"), cax=cax)
+    cb.set_label("intensity")
+    return fig
 
 
 def _fiducial_uv(result, i: int) -> np.ndarray:
