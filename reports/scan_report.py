@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from matplotlib.colors import LogNorm
 from matplotlib.patches import Circle, Rectangle
+from matplotlib.ticker import MaxNLocator
 
 from markcal.reports.cloud_view import IsoView, splat
 from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
@@ -163,7 +164,7 @@ def _histogram_figures(result) -> str:
         ax.set_xlabel(lab)
         ax.set_ylabel("fiducials")
         ax.grid(alpha=0.25)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.16, top=0.96, wspace=0.28)   # fixed: no layout pass
     out = [img(png_b64(fig), "deviation histograms",
                 "Histograms of the deviation components δx, δy and of |δ| (mm); dashed line: mean. "
                 "(Paper Fig. 8.)")]
@@ -440,7 +441,11 @@ def _fiducial_crops(result) -> str:
     raster, edges = result.raster, result.edges
     radii = tuple(result.spec.ring_radii_mm)
     half = max(4.0, 1.2 * max(radii))
-    fig = new_figure(13.0, 3.5 * len(picks))
+    h_in = 3.5 * len(picks)
+    fig = new_figure(13.0, h_in)
+    # fixed margins (inches: 0.5 for the x labels, 0.55 for the two-line titles) instead of a layout pass
+    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.5 / h_in, top=1 - 0.55 / h_in, wspace=0.32,
+                        hspace=1.05 / (3.5 - 1.05))
     for k, (i, why) in enumerate(picks):
         uv = _fiducial_uv(result, i)
         scale = float(f["ring_radius_scale"][i])
@@ -476,13 +481,14 @@ def _fiducial_crops(result) -> str:
             ax.set_xlabel("u (mm)", fontsize=8)
             ax.set_ylabel("v (mm)", fontsize=8)
             ax.tick_params(labelsize=7)
+            ax.xaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))   # fewer tick objects to lay out and draw
+            ax.yaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))
             if j == 0:
                 ax.set_title(f"id {int(f['id'][i])} (row {r}, col {c}): {why}\n"
                              f"fit RMS {float(f['fit_rms'][i]):.3g}, radius scale {scale:.4f}", fontsize=8.5,
-                             loc="left")
+                             loc="left", y=1.0)         # a fixed y: no automatic title placement pass
             else:
-                ax.set_title(name, fontsize=9)
-    fig.tight_layout()
+                ax.set_title(name, fontsize=9, y=1.0)
     radii_txt = ", ".join(f"{x:g}" for x in radii)
     return img(png_b64(fig), "fiducial crops",
                 f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(picks)} detected "
