@@ -6,12 +6,14 @@ base64 PNG; CSS is inline; pages need no network and no server.
 from __future__ import annotations
 
 import base64
+import contextvars
 import html
 import io
+import time
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "data_files_footer", "verdict_banner",
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "data_files_footer", "verdict_banner",
            "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
@@ -146,6 +148,33 @@ PNG_COMPRESS_LEVEL = 1
 PAD_PX = 10
 
 
+#: this thread's figure counter: (say, figures drawn, time of the last line); None: no progress lines
+_FIGURE_PROGRESS = contextvars.ContextVar("markcal_figure_progress", default=None)
+#: shortest time between two "figures drawn" lines (s)
+FIGURE_PROGRESS_EVERY_S = 1.0
+
+
+def figure_progress(say) -> None:
+    """Report figures drawn from now on in this thread through ``say(msg)`` (None: stop).
+
+    A line ``report: N figures drawn`` goes out after a figure when the last one went out at
+    least :data:`FIGURE_PROGRESS_EVERY_S` ago, so a long report never leaves the terminal silent
+    for long. Other threads (and worker processes) are not affected.
+    """
+    _FIGURE_PROGRESS.set(None if say is None else [say, 0, time.perf_counter()])
+
+
+def _figure_drawn() -> None:
+    st = _FIGURE_PROGRESS.get()
+    if st is None:
+        return
+    st[1] += 1
+    now = time.perf_counter()
+    if now - st[2] >= FIGURE_PROGRESS_EVERY_S:
+        st[0](f"report: {st[1]} figure{'' if st[1] == 1 else 's'} drawn")
+        st[2] = now
+
+
 def png_bytes(fig) -> bytes:
     """Render ``fig`` once on its Agg canvas, crop it to the drawn content and return PNG bytes.
 
@@ -175,6 +204,7 @@ def png_bytes(fig) -> bytes:
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=DPI, bbox_inches=tight, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
         fig.clear()
+        _figure_drawn()
         return buf.getvalue()
     from PIL import Image
     r0, r1, c0, c1 = box
@@ -183,6 +213,7 @@ def png_bytes(fig) -> bytes:
     buf = io.BytesIO()
     Image.fromarray(np.ascontiguousarray(crop)).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL)
     fig.clear()
+    _figure_drawn()
     return buf.getvalue()
 
 
