@@ -176,44 +176,51 @@ def _figure_drawn() -> None:
 
 
 def png_bytes(fig) -> bytes:
-    """Render ``fig`` once on its Agg canvas, crop it to the drawn content and return PNG bytes.
+    """Render ``fig`` once on its Agg canvas, crop it to its tight bounding box and return PNG bytes.
 
-    The crop gives what ``savefig(bbox_inches="tight")`` gives without its second drawing pass; a figure
-    drawing up to its edge (an artist placed outside the canvas) goes through ``savefig`` as before.
-    The figure is cleared.
+    The picture is what ``savefig(bbox_inches="tight")`` gives, without its second drawing pass: the
+    tight box is measured on the drawn canvas and cut out of it. A figure with an artist beyond the
+    canvas goes through ``savefig`` with the measured box (one more drawing); a see-through background
+    through ``savefig(bbox_inches="tight")``. The figure is cleared.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     canvas = fig.canvas
-    rgba = None
-    drawn = isinstance(canvas, FigureCanvasAgg) and fig.get_facecolor()[3] == 1.0
-    if drawn:
+    box = "tight"
+    if isinstance(canvas, FigureCanvasAgg) and fig.get_facecolor()[3] == 1.0:
         try:
             canvas.draw()
         except (TypeError, UnicodeError):           # a text FreeType cannot take (a file name's stray bytes)
             _drawable_texts(fig)
             canvas.draw()
-        rgba = np.asarray(canvas.buffer_rgba())
-        box = _content_box(rgba)
-        if box is None:
-            rgba = None
-    if rgba is None:
-        _drawable_texts(fig)
-        tight = "tight"
-        if drawn:
-            tight = fig.get_tightbbox(canvas.get_renderer()).padded(PAD_PX / DPI)    # text sizes known: no 2nd layout
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=DPI, bbox_inches=tight, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
-        fig.clear()
-        _figure_drawn()
-        return buf.getvalue()
-    from PIL import Image
-    r0, r1, c0, c1 = box
-    h, w = rgba.shape[:2]
-    crop = rgba[max(r0 - PAD_PX, 0):min(r1 + PAD_PX, h), max(c0 - PAD_PX, 0):min(c1 + PAD_PX, w), :3]
+        tight = fig.get_tightbbox(canvas.get_renderer())      # inches; the text sizes are known by now
+        w_in, h_in = fig.get_size_inches()
+        tol = 0.5 / DPI
+        if tight.x0 >= -tol and tight.y0 >= -tol and tight.x1 <= w_in + tol and tight.y1 <= h_in + tol:
+            data = _crop_png(np.asarray(canvas.buffer_rgba()), tight, h_in, fig.dpi)
+            fig.clear()
+            _figure_drawn()
+            return data
+        box = tight.padded(PAD_PX / DPI)                 # measured: savefig need not lay the figure out again
+    _drawable_texts(fig)
     buf = io.BytesIO()
-    Image.fromarray(np.ascontiguousarray(crop)).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL)
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches=box, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
     fig.clear()
     _figure_drawn()
+    return buf.getvalue()
+
+
+def _crop_png(rgba: np.ndarray, box, h_in: float, dpi: float) -> bytes:
+    """PNG of the canvas pixels inside ``box`` (inches, origin lower left) plus :data:`PAD_PX` of white."""
+    from PIL import Image
+    c0, c1 = int(round(box.x0 * dpi)) - PAD_PX, int(round(box.x1 * dpi)) + PAD_PX
+    r0, r1 = int(round((h_in - box.y1) * dpi)) - PAD_PX, int(round((h_in - box.y0) * dpi)) + PAD_PX
+    h, w = rgba.shape[:2]
+    crop = rgba[max(r0, 0):min(r1, h), max(c0, 0):min(c1, w), :3]
+    pad = ((max(-r0, 0), max(r1 - h, 0)), (max(-c0, 0), max(c1 - w, 0)), (0, 0))
+    if any(p for pp in pad for p in pp):                # the box touches the canvas edge: white beyond it
+        crop = np.pad(crop, pad, constant_values=255)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(crop)).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL)
     return buf.getvalue()
 
 
@@ -222,21 +229,6 @@ def _drawable_texts(fig) -> None:
     from matplotlib.text import Text
     for t in fig.findobj(Text):
         t.set_text(drawable(t.get_text()))
-
-
-def _content_box(rgba: np.ndarray):
-    """Rows and columns ``(r0, r1, c0, c1)`` holding pixels unlike the corner pixel; None when the content
-    reaches the canvas edge (then only a tight bounding box can show all of it) or there is none."""
-    bg = rgba[0, 0]
-    diff = np.any(rgba != bg, axis=2)
-    rows, cols = np.flatnonzero(diff.any(axis=1)), np.flatnonzero(diff.any(axis=0))
-    if not len(rows):
-        return None
-    r0, r1, c0, c1 = rows[0], rows[-1] + 1, cols[0], cols[-1] + 1
-    h, w = diff.shape
-    if r0 == 0 or c0 == 0 or r1 == h or c1 == w:
-        return None
-    return int(r0), int(r1), int(c0), int(c1)
 
 
 def png_b64(fig) -> str:
