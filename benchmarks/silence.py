@@ -3,8 +3,10 @@
 Runs each command of the chosen size set as a child process in a temporary folder (the render
 commands first, so the later commands have their inputs), stamps every stderr line on arrival and
 prints, per command: wall and CPU time (user + system of the child), the number of stderr lines,
-the longest gap (start -> first line, between lines, last line -> exit) and the line that ends it.
-The load average is printed with the table; on a loaded machine wall gaps grow with the load.
+the longest gap (start -> first line, between lines, last line -> exit), the CPU time the child
+used in it, and the line that ends it; then the largest CPU time used between two lines (read from
+/proc at each line: what the gap would be on an idle core, for one-threaded work; the CPU of worker
+processes is not counted). On a loaded machine the wall gaps grow with the load; the CPU gaps do not.
 
     python benchmarks/silence.py [--size small|demo|both] [--limit 2.0] [--keep]
 """
@@ -62,15 +64,27 @@ def run_one(argv: list, cwd: str) -> dict:
                          stderr=subprocess.PIPE, text=True, bufsize=1)
     stamps = []
     for line in p.stderr:
-        stamps.append((time.perf_counter() - t0, line.rstrip("\n")))
+        stamps.append((time.perf_counter() - t0, _cpu_s(p.pid), line.rstrip("\n")))
     _, status, ru = os.wait4(p.pid, 0)
     wall = time.perf_counter() - t0
+    cpu = ru.ru_utime + ru.ru_stime
     p.returncode = os.waitstatus_to_exitcode(status)
-    edges = [(0.0, "(start)")] + stamps + [(wall, "(exit)")]
-    gaps = [(b[0] - a[0], b[1]) for a, b in zip(edges, edges[1:])]
-    gap, after = max(gaps, key=lambda g: g[0])
-    return {"wall": wall, "cpu": ru.ru_utime + ru.ru_stime, "status": p.returncode, "lines": len(stamps),
-            "gap": gap, "ends_with": after, "tail": [s for _, s in stamps[-3:]]}
+    edges = [(0.0, 0.0, "(start)")] + stamps + [(wall, cpu, "(exit)")]
+    gaps = [(b[0] - a[0], b[1] - a[1], b[2]) for a, b in zip(edges, edges[1:])]
+    gap, cpu_gap, after = max(gaps, key=lambda g: g[0])
+    return {"wall": wall, "cpu": cpu, "status": p.returncode, "lines": len(stamps), "gap": gap,
+            "cpu_gap": max(g[1] for g in gaps), "gap_cpu": cpu_gap, "ends_with": after,
+            "tail": [s for _, _, s in stamps[-3:]]}
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system, s) the process has used so far, from /proc (0 where there is none)."""
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            f = fh.read().rsplit(")", 1)[1].split()
+        return (int(f[11]) + int(f[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return 0.0
 
 
 def main() -> int:
@@ -82,7 +96,8 @@ def main() -> int:
     sizes = ("small", "demo") if args.size == "both" else (args.size,)
     tmp = tempfile.mkdtemp(prefix="markcal-silence-")
     env_cpus = os.cpu_count()
-    print(f"{'command':<72} {'wall s':>7} {'CPU s':>6} {'exit':>4} {'lines':>5} {'gap s':>6}  line ending the gap")
+    print(f"{'command':<64} {'wall s':>6} {'CPU s':>5} {'exit':>4} {'lines':>5} {'gap s':>5} {'(CPU)':>5} "
+          f"{'max CPU gap':>11}  line ending the longest gap")
     over = []
     loads = []
     try:
@@ -92,8 +107,8 @@ def main() -> int:
             loads.append(os.getloadavg()[0])
             r = run_one(line.split(), tmp)
             flag = " <-- over" if r["gap"] > args.limit else ""
-            print(f"{line[:72]:<72} {r['wall']:7.1f} {r['cpu']:6.1f} {r['status']:4d} {r['lines']:5d} "
-                  f"{r['gap']:6.2f}  {r['ends_with'][:60]}{flag}", flush=True)
+            print(f"{line[:64]:<64} {r['wall']:6.1f} {r['cpu']:5.1f} {r['status']:4d} {r['lines']:5d} "
+                  f"{r['gap']:5.2f} {r['gap_cpu']:5.2f} {r['cpu_gap']:11.2f}  {r['ends_with'][:50]}{flag}", flush=True)
             if r["status"] not in (0, 4):
                 print(f"    failed: {' | '.join(r['tail'])}")
             if r["gap"] > args.limit:

@@ -15,7 +15,7 @@ from matplotlib.patches import Circle, Rectangle
 from matplotlib.ticker import MaxNLocator
 
 from markcal.reports.cloud_view import IsoView, splat
-from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -386,9 +386,16 @@ def _cloud_figure(xyz, inten, origin_mm, normal, arrow_mm: float = 60.0):
     pic = splat(view, xyz, inten, size_px=2)
     lo, hi = np.percentile(inten, [1, 99])
     hi = max(hi, lo + 1e-6)
-    fig = new_figure(w_px / 100 + 1.2, h_px / 100 + 0.3)
-    ax = fig.add_axes((0.0, 0.02, w_px / 100 / (w_px / 100 + 1.2), 0.96))
-    ax.imshow(np.ma.masked_invalid(pic), cmap="gray", vmin=lo, vmax=hi, interpolation="nearest")
+    w_fig, h_fig = w_px + 120, h_px + 30                    # pixels at the report's DPI: room for the colour bar
+    fig = new_figure(w_fig / DPI, h_fig / DPI)
+    x0, y0 = 0, 15
+    grey = np.full(pic.shape, 255, np.uint8)                # white where no point landed
+    seen = np.isfinite(pic)
+    grey[seen] = np.round(np.clip((pic[seen] - lo) / (hi - lo), 0, 1) * 255)     # the "gray" colour map
+    fig.figimage(np.repeat(grey[:, :, None], 3, axis=2), xo=x0, yo=y0, origin="upper")   # pixel for pixel
+    ax = fig.add_axes((x0 / w_fig, y0 / h_fig, w_px / w_fig, h_px / h_fig))      # the picture's pixels as data units
+    ax.patch.set_alpha(0.0)
+    ax.set_zorder(1)                                        # above the picture
     ax.set_xlim(0, w_px)
     ax.set_ylim(h_px, 0)
     ax.set_axis_off()
