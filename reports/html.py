@@ -9,11 +9,12 @@ import base64
 import contextvars
 import html
 import io
+import os
 import time
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "data_files_footer", "verdict_banner",
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "parts_in_two", "data_files_footer", "verdict_banner",
            "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
@@ -234,6 +235,76 @@ def _drawable_texts(fig) -> None:
 def png_b64(fig) -> str:
     """Render ``fig`` to PNG (:func:`png_bytes`) and return it base64-encoded (the figure is cleared)."""
     return base64.b64encode(png_bytes(fig)).decode("ascii")
+
+
+#: environment variable: "0" keeps every report figure in this process
+FORK_ENV = "MARKCAL_REPORT_FORK"
+#: seconds the parent waits for the child's figures before drawing them itself
+FORK_TIMEOUT_S = 120.0
+
+
+def parts_in_two(here, there) -> tuple:
+    """Evaluate two lists of report parts (callables returning HTML): ``there`` in a forked child
+    process while this one does ``here``, when that can help; else both here, one after the other.
+
+    The child only draws and sends its strings back through a pipe, then ends (``os._exit``); the parent
+    always reaps it. A child that fails, sends nothing or takes longer than :data:`FORK_TIMEOUT_S`
+    is killed and its parts are drawn here, so an error comes out here, as it would without the
+    child. No fork with one core, a loaded machine (1-minute load at or above the core count), other
+    Python threads running, or ``MARKCAL_REPORT_FORK=0``.
+    """
+    if not _fork_helps():
+        return [f() for f in here], [f() for f in there]
+    import pickle
+    import select
+    import signal
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:                                          # the child: draw, send, end
+        code = 0
+        try:
+            os.close(r)
+            _FIGURE_PROGRESS.set(None)
+            data = pickle.dumps([f() for f in there])
+            with os.fdopen(w, "wb") as fh:
+                fh.write(data)
+        except BaseException:                             # noqa: BLE001 - the parent redraws; nothing printed
+            code = 1
+        finally:
+            os._exit(code)
+    os.close(w)
+    theirs = None
+    try:
+        mine = [f() for f in here]
+        chunks, deadline = [], time.monotonic() + FORK_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if select.select([r], [], [], max(deadline - time.monotonic(), 0.0))[0]:
+                chunk = os.read(r, 1 << 20)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+        else:
+            os.kill(pid, signal.SIGKILL)
+            chunks = []
+        _, status = os.waitpid(pid, 0)
+        pid = 0
+        if chunks and os.waitstatus_to_exitcode(status) == 0:
+            theirs = pickle.loads(b"".join(chunks))
+    finally:
+        os.close(r)
+        if pid:                                           # this process failed while the child ran
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    if theirs is None:
+        theirs = [f() for f in there]
+    return mine, theirs
+
+
+def _fork_helps() -> bool:
+    import threading
+    cores = os.cpu_count() or 1
+    return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "1") != "0"
+            and threading.active_count() == 1 and os.getloadavg()[0] < cores)
 
 
 def img(b64: str, alt: str, caption: str) -> str:

@@ -15,7 +15,7 @@ from matplotlib.patches import Circle, Rectangle
 from matplotlib.ticker import MaxNLocator
 
 from markcal.reports.cloud_view import IsoView, splat
-from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, parts_in_two, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -529,17 +529,23 @@ def scan_report_html(result: "ScanResult") -> str:
     kind = s.get("kind", "calibration")
     title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
              else "markcal scan report — calibration plate")
+    cloud = (lambda: "\n".join(_image_section(result))) if "image_pixel_mm" in s else (lambda: _render_3d(result))
+    # the figures in two similar halves: the second in a forked process when a core is free (html.parts_in_two)
+    (quiver, hist, view), (model, crops) = parts_in_two(
+        [lambda: _quiver_figure(result), lambda: _histogram_figures(result), cloud],
+        [lambda: _model_section(result), lambda: _fiducial_crops(result)])
     parts = [
         f'<div class="verdict">{_verdict(s, kind)}</div>',
         _summary_section(result),
         "<h2>Deviations</h2>",
-        _quiver_figure(result),
-        _histogram_figures(result),
+        quiver,
+        hist,
         _stats_table(result.stats),
-        _model_section(result),
-        *(_image_section(result) if "image_pixel_mm" in s else ("<h2>Point cloud</h2>", _render_3d(result))),
+        model,
+        *(() if "image_pixel_mm" in s else ("<h2>Point cloud</h2>",)),
+        view,
         "<h2>Detected fiducials</h2>",
-        _fiducial_crops(result),
+        crops,
         _footer(),
     ]
     return page(title, parts, source=s.get("source", result.source), summary=s)

@@ -4,8 +4,10 @@ from __future__ import annotations
 import base64
 import csv
 import io
+import os
 import re
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -128,6 +130,7 @@ def test_splat_shows_the_nearest_point_and_leaves_gaps_empty():
 
 def test_scan_report_draws_every_figure_in_one_pass(small_result, monkeypatch):
     from markcal.reports.scan_report import scan_report_html
+    monkeypatch.setattr(html, "_fork_helps", lambda: False)        # every figure in this process, to count
     calls = {"savefig": 0}
     from matplotlib.figure import Figure
     orig = Figure.savefig
@@ -146,3 +149,53 @@ def test_scan_report_draws_every_figure_in_one_pass(small_result, monkeypatch):
     grey = np.asarray(cloud.convert("RGB"), float)
     red = (grey[..., 0] > 150) & (grey[..., 1] < 60) & (grey[..., 2] < 60)
     assert red.sum() > 100                         # the plate normal's arrow is drawn
+
+
+def _no_children() -> bool:
+    try:
+        os.waitpid(-1, os.WNOHANG)
+    except ChildProcessError:
+        return True
+    return False
+
+
+@pytest.fixture
+def forking(monkeypatch):
+    monkeypatch.setattr(html, "_fork_helps", lambda: True)
+    return os.getpid()
+
+
+def test_parts_in_two_draws_the_second_half_in_a_child(forking):
+    mine, theirs = html.parts_in_two([lambda: "a", lambda: str(os.getpid())], [lambda: str(os.getpid()), lambda: "z"])
+    assert mine == ["a", str(forking)]
+    assert theirs[1] == "z" and theirs[0] != str(forking)          # drawn by another process
+    assert _no_children()                                          # reaped
+
+
+def test_parts_in_two_redraws_what_the_child_failed(forking):
+    parent = forking
+    _, theirs = html.parts_in_two([lambda: "a"], [lambda: "redone here" if os.getpid() == parent else 1 / 0])
+    assert theirs == ["redone here"] and _no_children()
+
+
+def test_parts_in_two_kills_a_slow_child(forking, monkeypatch):
+    parent = forking
+    monkeypatch.setattr(html, "FORK_TIMEOUT_S", 0.5)
+    t0 = time.perf_counter()
+    _, theirs = html.parts_in_two([lambda: "a"], [lambda: "here" if os.getpid() == parent else time.sleep(60)])
+    assert theirs == ["here"] and time.perf_counter() - t0 < 20 and _no_children()
+
+
+def test_parts_in_two_error_here_ends_the_child(forking):
+    t0 = time.perf_counter()
+    with pytest.raises(ZeroDivisionError, match="division by zero"):
+        html.parts_in_two([lambda: 1 / 0], [lambda: time.sleep(60)])
+    assert time.perf_counter() - t0 < 20 and _no_children()
+
+
+def test_scan_report_is_the_same_drawn_in_two_processes(small_result, monkeypatch):
+    from markcal.reports.scan_report import scan_report_html
+    monkeypatch.setattr(html, "_fork_helps", lambda: False)
+    alone = scan_report_html(small_result)
+    monkeypatch.setattr(html, "_fork_helps", lambda: True)
+    assert scan_report_html(small_result) == alone and _no_children()
