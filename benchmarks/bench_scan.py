@@ -10,6 +10,9 @@ timed the same way, in children, on the fiducials of the first run, and so is th
 codes are compared with benchmarks/compare_outputs.py.
 
     python benchmarks/bench_scan.py [--runs 3] [--ref 5f2c370] [--cloud PLY --plate TOML]
+
+This code draws half of the report's figures in a forked process when a core is free (load below
+the core count); ``MARKCAL_REPORT_FORK=0 python benchmarks/bench_scan.py`` times it without.
 """
 from __future__ import annotations
 
