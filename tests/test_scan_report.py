@@ -151,9 +151,10 @@ def test_scan_report_draws_every_figure_in_one_pass(small_result, monkeypatch):
     assert red.sum() > 100                         # the plate normal's arrow is drawn
 
 
-def _no_children() -> bool:
+def _reaped(pid: int) -> bool:
+    """The child ``pid`` is gone and was waited for (no zombie left)."""
     try:
-        os.waitpid(-1, os.WNOHANG)
+        os.waitpid(pid, os.WNOHANG)
     except ChildProcessError:
         return True
     return False
@@ -161,41 +162,55 @@ def _no_children() -> bool:
 
 @pytest.fixture
 def forking(monkeypatch):
+    """parts_in_two forks whatever the load; the pids of its children are recorded."""
     monkeypatch.setattr(html, "_fork_helps", lambda: True)
-    return os.getpid()
+    children, real_fork = [], os.fork
+
+    def fork():
+        pid = real_fork()
+        if pid:
+            children.append(pid)
+        return pid
+    monkeypatch.setattr(os, "fork", fork)
+    return children
+
+
+def _all_reaped(children) -> bool:
+    return len(children) == 1 and all(_reaped(p) for p in children)
 
 
 def test_parts_in_two_draws_the_second_half_in_a_child(forking):
+    me = str(os.getpid())
     mine, theirs = html.parts_in_two([lambda: "a", lambda: str(os.getpid())], [lambda: str(os.getpid()), lambda: "z"])
-    assert mine == ["a", str(forking)]
-    assert theirs[1] == "z" and theirs[0] != str(forking)          # drawn by another process
-    assert _no_children()                                          # reaped
+    assert mine == ["a", me]
+    assert theirs == [str(forking[0]), "z"]                       # drawn by the child
+    assert _all_reaped(forking)
 
 
 def test_parts_in_two_redraws_what_the_child_failed(forking):
-    parent = forking
+    parent = os.getpid()
     _, theirs = html.parts_in_two([lambda: "a"], [lambda: "redone here" if os.getpid() == parent else 1 / 0])
-    assert theirs == ["redone here"] and _no_children()
+    assert theirs == ["redone here"] and _all_reaped(forking)
 
 
 def test_parts_in_two_kills_a_slow_child(forking, monkeypatch):
-    parent = forking
+    parent = os.getpid()
     monkeypatch.setattr(html, "FORK_TIMEOUT_S", 0.5)
     t0 = time.perf_counter()
     _, theirs = html.parts_in_two([lambda: "a"], [lambda: "here" if os.getpid() == parent else time.sleep(60)])
-    assert theirs == ["here"] and time.perf_counter() - t0 < 20 and _no_children()
+    assert theirs == ["here"] and time.perf_counter() - t0 < 20 and _all_reaped(forking)
 
 
 def test_parts_in_two_error_here_ends_the_child(forking):
     t0 = time.perf_counter()
     with pytest.raises(ZeroDivisionError, match="division by zero"):
         html.parts_in_two([lambda: 1 / 0], [lambda: time.sleep(60)])
-    assert time.perf_counter() - t0 < 20 and _no_children()
+    assert time.perf_counter() - t0 < 20 and _all_reaped(forking)
 
 
-def test_scan_report_is_the_same_drawn_in_two_processes(small_result, monkeypatch):
+def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, monkeypatch):
     from markcal.reports.scan_report import scan_report_html
     monkeypatch.setattr(html, "_fork_helps", lambda: False)
     alone = scan_report_html(small_result)
     monkeypatch.setattr(html, "_fork_helps", lambda: True)
-    assert scan_report_html(small_result) == alone and _no_children()
+    assert scan_report_html(small_result) == alone and _all_reaped(forking)
