@@ -214,3 +214,11 @@ def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, m
     alone = scan_report_html(small_result)
     monkeypatch.setattr(html, "_fork_helps", lambda: True)
     assert scan_report_html(small_result) == alone and _all_reaped(forking)
+
+
+def test_no_fork_unless_asked(monkeypatch):
+    monkeypatch.delenv(html.FORK_ENV, raising=False)
+    assert not html._fork_helps()
+    monkeypatch.setenv(html.FORK_ENV, "1")
+    monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+    assert not html._fork_helps()                                   # asked, but no core is free
