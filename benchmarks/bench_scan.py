@@ -5,10 +5,14 @@ cloud.ply --plate plate.toml --out DIR --quiet`` (report included) in child proc
 the reference commit (``git archive`` into a temporary folder, imported through PYTHONPATH) and this
 working tree, and prints medians of wall and CPU time (user + system of the child) side by side,
 with the load average. The RBF selection (5-fold CV over the scan flow's spreads and goals) is
-timed the same way, in children, on the fiducials of the first run. The output trees of both
+timed the same way, in children, on the fiducials of the first run, and so is the output side
+(the flow's writer: tables, model.json, report.html, imports included, after an untimed flow). The output trees of both
 codes are compared with benchmarks/compare_outputs.py.
 
     python benchmarks/bench_scan.py [--runs 3] [--ref 5f2c370] [--cloud PLY --plate TOML]
+
+``MARKCAL_REPORT_FORK=1 python benchmarks/bench_scan.py`` times this code with half of the report's
+figures drawn in a forked process when a core is free (load below the core count; off by default).
 """
 from __future__ import annotations
 
@@ -38,6 +42,20 @@ c, w = time.process_time(), time.perf_counter()
 sel = rbf.select(p, d, spreads, MSE_GOALS_MM2, 5, 0, 200)
 m = rbf.train(p, d, sel.spread_mm, sel.mse_goal_mm2, 200)
 print(time.perf_counter() - w, time.process_time() - c, sel.spread_mm, sel.mse_goal_mm2, m.n_neurons)
+"""
+
+#: the output side alone: the flow runs untimed, then its writer (tables, model, report.html with its imports)
+OUTPUT_SNIPPET = r"""
+import resource, sys, time
+from markcal.pipeline.registry import get_flow
+def cpu():   # this process and its reaped children (figures drawn in a forked child count too)
+    return sum(getattr(resource.getrusage(who), k) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+               for k in ("ru_utime", "ru_stime"))
+flow = get_flow("scan")
+res = flow.descriptor.run(sys.argv[1], sys.argv[2], dict(flow.descriptor.options), None)
+c, w = cpu(), time.perf_counter()
+flow.write(res, sys.argv[3], report=True)
+print(time.perf_counter() - w, cpu() - c)
 """
 
 
@@ -107,6 +125,7 @@ def main():
         del codes[f"ref {args.ref}"]
     times = {k: [] for k in codes}
     rbf_times = {k: [] for k in codes}
+    out_times = {k: [] for k in codes}
     loads = []
     for i in range(args.runs):
         for name, path in codes.items():
@@ -119,18 +138,23 @@ def main():
             _, _, line = _run(["-c", RBF_SNIPPET, fid], path)
             w, c, *sel = line.split()
             rbf_times[name].append((float(w), float(c), sel))
+            _, _, line = _run(["-c", OUTPUT_SNIPPET, cloud, plate, out + "_w"], path)
+            out_times[name].append(tuple(float(v) for v in line.split()))
+            print(f"run {i + 1} {name:>14}: output side (tables + report.html, imports included) wall "
+                  f"{out_times[name][-1][0]:5.2f} s, CPU {out_times[name][-1][1]:5.2f} s", flush=True)
             print(f"run {i + 1} {name:>14}: whole command wall {wall:6.1f} s, CPU {cpu:6.1f} s; "
                   f"RBF selection + training wall {float(w):5.2f} s, CPU {float(c):5.2f} s "
                   f"(spread {sel[0]} mm, goal {sel[1]} mm2, {sel[2]} neurons); load {loads[-1]:.1f}", flush=True)
     med = statistics.median
     print(f"\nload average 1 min during the runs: {min(loads):.1f}-{max(loads):.1f} ({os.cpu_count()} cores)")
     if len(codes) == 1:
-        for label, t in (("whole command", times), ("RBF selection + training", rbf_times)):
+        for label, t in (("whole command", times), ("RBF selection + training", rbf_times),
+                         ("output side", out_times)):
             print(f"{label:>25}: wall median {med([x[0] for x in t['this tree']]):6.2f} s, "
                   f"CPU median {med([x[1] for x in t['this tree']]):6.2f} s")
         return
     ref, new = list(codes)
-    for label, t in (("whole command", times), ("RBF selection + training", rbf_times)):
+    for label, t in (("whole command", times), ("RBF selection + training", rbf_times), ("output side", out_times)):
         for k, name in ((0, "wall"), (1, "CPU")):
             a, b = med([x[k] for x in t[ref]]), med([x[k] for x in t[new]])
             print(f"{label:>25} {name:>4}: {ref} median {a:6.2f} s | this tree {b:6.2f} s | ratio {a / b:4.2f}x")

@@ -220,16 +220,41 @@ def _fmt(v):
 
 
 def write_csv(path, columns: dict) -> None:
-    """Write a dict of equal-length columns as CSV with a header row."""
+    """Write a dict of equal-length columns as CSV with a header row.
+
+    Floats are written by ``repr`` (exact round trip; NaN and infinities as empty cells). Numeric and
+    boolean columns are formatted column by column; a table with any other column goes through the
+    ``csv`` module (quoting), cell by cell.
+    """
     names = list(columns)
-    n = len(next(iter(columns.values()))) if columns else 0
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     w.writerow(names)
     cols = [np.asarray(columns[k]) for k in names]
-    for i in range(n):
-        w.writerow([_fmt(c[i]) for c in cols])
+    if all(c.ndim == 1 and c.dtype.kind in "fiub" for c in cols):
+        text = [_column_text(c) for c in cols]
+        if len(text) == 1:                      # the csv module writes a row of one empty cell as ""
+            text = [[t or '""' for t in text[0]]]
+        if text:
+            buf.write("\n".join(map(",".join, zip(*text))))
+            buf.write("\n" if len(text[0]) else "")
+    else:
+        n = len(cols[0]) if cols else 0
+        for i in range(n):
+            w.writerow([_fmt(c[i]) for c in cols])
     atomic_write_text(path, buf.getvalue())
+
+
+def _column_text(col: np.ndarray) -> list:
+    """Cells of one numeric column as :func:`_fmt` writes them."""
+    if col.dtype.kind == "f":
+        finite = np.isfinite(col)
+        cells = list(map(repr, col.astype(float).tolist()))
+        if not finite.all():
+            for i in np.flatnonzero(~finite):
+                cells[i] = ""
+        return cells
+    return list(map(str, col.tolist()))
 
 
 def read_csv(path) -> dict:

@@ -6,12 +6,15 @@ base64 PNG; CSS is inline; pages need no network and no server.
 from __future__ import annotations
 
 import base64
+import contextvars
 import html
 import io
+import os
+import time
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "data_files_footer", "verdict_banner",
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "parts_in_two", "data_files_footer", "verdict_banner",
            "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
@@ -140,15 +143,178 @@ def drawable(text):
     return text.encode("utf-8", "backslashreplace").decode("utf-8") if isinstance(text, str) else text
 
 
-def png_b64(fig) -> str:
-    """Render ``fig`` to PNG and return it base64-encoded (the figure is cleared)."""
+#: zlib level of the report PNGs: 1 encodes several times faster than matplotlib's 6 for files ~10-20 % larger
+PNG_COMPRESS_LEVEL = 1
+#: white margin kept around the drawn content (pixels; matplotlib's ``pad_inches=0.1`` at :data:`DPI`)
+PAD_PX = 10
+
+
+#: this thread's figure counter: (say, figures drawn, time of the last line); None: no progress lines
+_FIGURE_PROGRESS = contextvars.ContextVar("markcal_figure_progress", default=None)
+#: shortest time between two "figures drawn" lines (s)
+FIGURE_PROGRESS_EVERY_S = 1.0
+
+
+def figure_progress(say) -> None:
+    """Report figures drawn from now on in this thread through ``say(msg)`` (None: stop).
+
+    A line ``report: N figures drawn`` goes out after a figure when the last one went out at
+    least :data:`FIGURE_PROGRESS_EVERY_S` ago, so a long report never leaves the terminal silent
+    for long. Other threads (and worker processes) are not affected.
+    """
+    _FIGURE_PROGRESS.set(None if say is None else [say, 0, time.perf_counter()])
+
+
+def _figure_drawn() -> None:
+    st = _FIGURE_PROGRESS.get()
+    if st is None:
+        return
+    st[1] += 1
+    now = time.perf_counter()
+    if now - st[2] >= FIGURE_PROGRESS_EVERY_S:
+        st[0](f"report: {st[1]} figure{'' if st[1] == 1 else 's'} drawn")
+        st[2] = now
+
+
+def png_bytes(fig) -> bytes:
+    """Render ``fig`` once on its Agg canvas, crop it to its tight bounding box and return PNG bytes.
+
+    The picture is what ``savefig(bbox_inches="tight")`` gives, without its second drawing pass: the
+    tight box is measured on the drawn canvas and cut out of it. A figure with an artist beyond the
+    canvas goes through ``savefig`` with the measured box (one more drawing); a see-through background
+    through ``savefig(bbox_inches="tight")``. The figure is cleared.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    canvas = fig.canvas
+    box = "tight"
+    if isinstance(canvas, FigureCanvasAgg) and fig.get_facecolor()[3] == 1.0:
+        try:
+            canvas.draw()
+        except (TypeError, UnicodeError):           # a text FreeType cannot take (a file name's stray bytes)
+            _drawable_texts(fig)
+            canvas.draw()
+        tight = fig.get_tightbbox(canvas.get_renderer())      # inches; the text sizes are known by now
+        w_in, h_in = fig.get_size_inches()
+        tol = 0.5 / DPI
+        if tight.x0 >= -tol and tight.y0 >= -tol and tight.x1 <= w_in + tol and tight.y1 <= h_in + tol:
+            data = _crop_png(np.asarray(canvas.buffer_rgba()), tight, h_in, fig.dpi)
+            fig.clear()
+            _figure_drawn()
+            return data
+        box = tight.padded(PAD_PX / DPI)                 # measured: savefig need not lay the figure out again
+    _drawable_texts(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, bbox_inches=box, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
+    fig.clear()
+    _figure_drawn()
+    return buf.getvalue()
+
+
+def _crop_png(rgba: np.ndarray, box, h_in: float, dpi: float) -> bytes:
+    """PNG of the canvas pixels inside ``box`` (inches, origin lower left) plus :data:`PAD_PX` of white."""
+    from PIL import Image
+    c0, c1 = int(round(box.x0 * dpi)) - PAD_PX, int(round(box.x1 * dpi)) + PAD_PX
+    r0, r1 = int(round((h_in - box.y1) * dpi)) - PAD_PX, int(round((h_in - box.y0) * dpi)) + PAD_PX
+    h, w = rgba.shape[:2]
+    crop = rgba[max(r0, 0):min(r1, h), max(c0, 0):min(c1, w), :3]
+    pad = ((max(-r0, 0), max(r1 - h, 0)), (max(-c0, 0), max(c1 - w, 0)), (0, 0))
+    if any(p for pp in pad for p in pp):                # the box touches the canvas edge: white beyond it
+        crop = np.pad(crop, pad, constant_values=255)
+    buf = io.BytesIO()
+    Image.fromarray(np.ascontiguousarray(crop)).save(buf, format="png", compress_level=PNG_COMPRESS_LEVEL)
+    return buf.getvalue()
+
+
+def _drawable_texts(fig) -> None:
+    """Make every text of ``fig`` drawable (:func:`drawable`); walks all artists, so only when needed."""
     from matplotlib.text import Text
     for t in fig.findobj(Text):
         t.set_text(drawable(t.get_text()))
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, bbox_inches="tight")
-    fig.clear()
-    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def png_b64(fig) -> str:
+    """Render ``fig`` to PNG (:func:`png_bytes`) and return it base64-encoded (the figure is cleared)."""
+    return base64.b64encode(png_bytes(fig)).decode("ascii")
+
+
+#: environment variable: "1" lets a report draw half of its figures in a forked process (off by default:
+#: its wall-time gain on an idle machine is not measured yet; it costs 0.15-0.4 s CPU more)
+FORK_ENV = "MARKCAL_REPORT_FORK"
+#: seconds the parent waits for the child's figures before drawing them itself
+FORK_TIMEOUT_S = 120.0
+
+
+def parts_in_two(here, there) -> tuple:
+    """Evaluate two lists of report parts (callables returning HTML): ``there`` in a forked child
+    process while this one does ``here``, when that can help; else both here, one after the other.
+
+    The child only draws and sends its strings back through a pipe, then ends (``os._exit``); the parent
+    always reaps it. A child that fails, sends nothing or takes longer than :data:`FORK_TIMEOUT_S`
+    is killed and its parts are drawn here, so an error comes out here, as it would without the
+    child. Only with ``MARKCAL_REPORT_FORK=1``, and then no fork with one core, a loaded machine
+    (1-minute load at or above the core count) or other Python threads running.
+    """
+    if not _fork_helps():
+        return [f() for f in here], [f() for f in there]
+    import pickle
+    import select
+    import signal
+    import gc
+    r, w = os.pipe()
+    gc.freeze()                  # the collector leaves the objects both processes share alone: fewer page copies
+    try:
+        pid = os.fork()
+    except OSError:              # no memory or process slot for a child: all here
+        gc.unfreeze()
+        os.close(r)
+        os.close(w)
+        return [f() for f in here], [f() for f in there]
+    if pid == 0:                                          # the child: draw, send, end
+        code = 0
+        try:
+            os.close(r)
+            _FIGURE_PROGRESS.set(None)
+            data = pickle.dumps([f() for f in there])
+            with os.fdopen(w, "wb") as fh:
+                fh.write(data)
+        except BaseException:                             # noqa: BLE001 - the parent redraws; nothing printed
+            code = 1
+        finally:
+            os._exit(code)
+    gc.unfreeze()
+    os.close(w)
+    theirs = None
+    try:
+        mine = [f() for f in here]
+        chunks, deadline = [], time.monotonic() + FORK_TIMEOUT_S
+        while time.monotonic() < deadline:
+            if select.select([r], [], [], max(deadline - time.monotonic(), 0.0))[0]:
+                chunk = os.read(r, 1 << 20)
+                if not chunk:
+                    break
+                chunks.append(chunk)
+        else:
+            os.kill(pid, signal.SIGKILL)
+            chunks = []
+        _, status = os.waitpid(pid, 0)
+        pid = 0
+        if chunks and os.waitstatus_to_exitcode(status) == 0:
+            theirs = pickle.loads(b"".join(chunks))
+    finally:
+        os.close(r)
+        if pid:                                           # this process failed while the child ran
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+    if theirs is None:
+        theirs = [f() for f in there]
+    return mine, theirs
+
+
+def _fork_helps() -> bool:
+    import threading
+    cores = os.cpu_count() or 1
+    return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "0") == "1"
+            and threading.active_count() == 1 and os.getloadavg()[0] < cores)
 
 
 def img(b64: str, alt: str, caption: str) -> str:

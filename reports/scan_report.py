@@ -1,23 +1,21 @@
 """Self-contained HTML report of one scan flow result (paper 004 Figs. 4, 7-9, Table 1).
 
 Everything is inline: CSS in a ``<style>`` block, figures as base64 PNG. The
-module draws with matplotlib's Agg canvas (no pyplot state, nothing to close)
-and renders the point cloud with pyvista off-screen when OpenGL is there.
+module draws with matplotlib's Agg canvas (no pyplot state, nothing to close);
+the point cloud is projected with numpy (:mod:`markcal.reports.cloud_view`).
 It neither prints nor writes files; the caller stores the returned string.
 """
 from __future__ import annotations
 
-import base64
-import contextlib
-import io
 from typing import TYPE_CHECKING
 
 import numpy as np
 from matplotlib.colors import LogNorm
-from matplotlib.image import imsave
 from matplotlib.patches import Circle, Rectangle
+from matplotlib.ticker import MaxNLocator
 
-from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
+from markcal.reports.cloud_view import IsoView, splat
+from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, parts_in_two, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -166,12 +164,13 @@ def _histogram_figures(result) -> str:
         ax.set_xlabel(lab)
         ax.set_ylabel("fiducials")
         ax.grid(alpha=0.25)
-    fig.tight_layout()
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.16, top=0.96, wspace=0.28)   # fixed: no layout pass
     out = [img(png_b64(fig), "deviation histograms",
                 "Histograms of the deviation components δx, δy and of |δ| (mm); dashed line: mean. "
                 "(Paper Fig. 8.)")]
 
     fig = new_figure(6.0, 3.6)
+    fig.subplots_adjust(bottom=0.16)           # the x label inside the canvas: one drawing pass (html.png_bytes)
     ax = fig.add_subplot(111)
     if len(mag):
         srt = np.sort(mag)
@@ -220,7 +219,9 @@ def _cv_figure(sel) -> str:
     cv_table = np.asarray(sel.table, float)
     spreads = np.asarray(sel.spreads_mm, float)
     goals = np.asarray(sel.goals_mm2, float)
-    fig = new_figure(7.4, 0.45 * len(spreads) + 1.6)
+    h_in = 0.45 * len(spreads) + 1.6
+    fig = new_figure(7.4, h_in)
+    fig.subplots_adjust(bottom=1.0 / h_in)     # room for the slanted goal labels inside the canvas
     ax = fig.add_subplot(111)
     cv_um = cv_table * 1000.0                     # the cell numbers and the colour bar in the same unit
     good = cv_um[np.isfinite(cv_um) & (cv_um > 0)]
@@ -364,49 +365,54 @@ def _image_section(result) -> tuple:
 
 
 def _render_3d(result) -> str:
-    try:
-        import pyvista as pv
-
-        xyz = np.asarray(result.preview_xyz_mm, np.float32)
-        inten = np.asarray(result.preview_intensity, np.float32)
-        if len(xyz) == 0:
-            raise ValueError("no preview points")
-        quiet = pv.vtk_verbosity("error") if hasattr(pv, "vtk_verbosity") else contextlib.nullcontext()
-        with quiet:
-            shot = _screenshot(pv, result, xyz, inten)
-        buf = io.BytesIO()
-        imsave(buf, np.asarray(shot), format="png")
-        b64 = base64.b64encode(buf.getvalue()).decode("ascii")
-        return img(b64, "point cloud",
-                    f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
-                    f"grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
-                    f"(60 mm long); tilt {esc(num(result.summary.get('plate_tilt_deg'), '°'))}.")
-    except Exception as exc:  # noqa: BLE001 - any render failure becomes a note
-        reason = f"{type(exc).__name__}: {exc}".strip()
-        return f'<div class="warn">3D render unavailable: {esc(reason[:300])}</div>'
+    xyz = np.asarray(result.preview_xyz_mm, float)
+    inten = np.asarray(result.preview_intensity, float)
+    if len(xyz) == 0:
+        return '<div class="warn">3D view unavailable: no preview points</div>'
+    fig = _cloud_figure(xyz, inten, np.asarray(result.plane.origin_mm, float), np.asarray(result.plane.normal, float))
+    return img(png_b64(fig), "point cloud",
+               f"Point cloud ({len(xyz):,} of {int(result.summary.get('n_points', len(xyz))):,} points shown), "
+               f"isometric view, grey = backscatter intensity; red arrow: fitted plate normal at the plane origin "
+               f"(60 mm long); tilt {esc(num(result.summary.get('plate_tilt_deg'), '°'))}.")
 
 
-def _screenshot(pv, result, xyz, inten) -> np.ndarray:
-    """Off-screen pyvista render of the cloud and the plate normal; (h, w, 3) uint8."""
-    plotter = pv.Plotter(off_screen=True, window_size=(900, 650))
-    try:
-        plotter.set_background("white")
-        cloud = pv.PolyData(xyz)
-        cloud["intensity"] = inten
-        lo, hi = np.percentile(inten, [1, 99])
-        plotter.add_mesh(cloud, scalars="intensity", cmap="gray", clim=(float(lo), float(max(hi, lo + 1e-6))),
-                         point_size=2, render_points_as_spheres=False, show_scalar_bar=True,
-                         scalar_bar_args={"title": "intensity", "color": "black"})
-        n = np.asarray(result.plane.normal, float)
-        o = np.asarray(result.plane.origin_mm, float)
-        arrow = pv.Arrow(start=o, direction=n, scale=60.0, tip_length=0.2, tip_radius=0.06, shaft_radius=0.02)
-        plotter.add_mesh(arrow, color="red")
-        plotter.show_axes()
-        plotter.view_isometric()
-        plotter.camera.zoom(1.2)
-        return plotter.screenshot(return_img=True)
-    finally:
-        plotter.close()
+def _cloud_figure(xyz, inten, origin_mm, normal, arrow_mm: float = 60.0):
+    """Isometric picture of the cloud (:mod:`markcal.reports.cloud_view`) with the plate normal and axes."""
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    w_px, h_px = 860, 560
+    view = IsoView(np.vstack([xyz, origin_mm + arrow_mm * normal]), w_px, h_px)
+    pic = splat(view, xyz, inten, size_px=2)
+    lo, hi = np.percentile(inten, [1, 99])
+    hi = max(hi, lo + 1e-6)
+    w_fig, h_fig = w_px + 120, h_px + 30                    # pixels at the report's DPI: room for the colour bar
+    fig = new_figure(w_fig / DPI, h_fig / DPI)
+    x0, y0 = 0, 15
+    grey = np.full(pic.shape, 255, np.uint8)                # white where no point landed
+    seen = np.isfinite(pic)
+    grey[seen] = np.round(np.clip((pic[seen] - lo) / (hi - lo), 0, 1) * 255)     # the "gray" colour map
+    fig.figimage(np.repeat(grey[:, :, None], 3, axis=2), xo=x0, yo=y0, origin="upper")   # pixel for pixel
+    ax = fig.add_axes((x0 / w_fig, y0 / h_fig, w_px / w_fig, h_px / h_fig))      # the picture's pixels as data units
+    ax.patch.set_alpha(0.0)
+    ax.set_zorder(1)                                        # above the picture
+    ax.set_xlim(0, w_px)
+    ax.set_ylim(h_px, 0)
+    ax.set_axis_off()
+    (c0, r0), (c1, r1) = view.to_pixel(np.vstack([origin_mm, origin_mm + arrow_mm * normal]))
+    ax.annotate("", (c1, r1), (c0, r0), arrowprops={"arrowstyle": "-|>,head_length=0.9,head_width=0.45",
+                                                       "color": "#c00000", "lw": 3.0, "shrinkA": 0, "shrinkB": 0})
+    ax.plot([c0], [r0], "o", color="#c00000", ms=4)
+    base = np.array([45.0, h_px - 40.0])
+    for vec, lab, col in (((1, 0, 0), "x", "#e8603c"), ((0, 1, 0), "y", "#3aa655"), ((0, 0, 1), "z", "#1f4fd1")):
+        d = view.direction(vec) * 32
+        ax.annotate("", tuple(base + d), tuple(base), arrowprops={"arrowstyle": "-|>", "color": col, "lw": 1.6,
+                                                                "shrinkA": 0, "shrinkB": 0})
+        ax.text(*(base + 1.3 * d), lab, color=col, fontsize=9, ha="center", va="center", fontweight="bold")
+    cax = fig.add_axes((ax.get_position().x1 + 0.02, 0.2, 0.025, 0.6))
+    cb = fig.colorbar(ScalarMappable(Normalize(lo, hi), "gray"), cax=cax)
+    cb.set_label("intensity")
+    return fig
 
 
 def _fiducial_uv(result, i: int) -> np.ndarray:
@@ -442,7 +448,11 @@ def _fiducial_crops(result) -> str:
     raster, edges = result.raster, result.edges
     radii = tuple(result.spec.ring_radii_mm)
     half = max(4.0, 1.2 * max(radii))
-    fig = new_figure(13.0, 3.5 * len(picks))
+    h_in = 3.5 * len(picks)
+    fig = new_figure(13.0, h_in)
+    # fixed margins (inches: 0.5 for the x labels, 0.55 for the two-line titles) instead of a layout pass
+    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.5 / h_in, top=1 - 0.55 / h_in, wspace=0.32,
+                        hspace=1.05 / (3.5 - 1.05))
     for k, (i, why) in enumerate(picks):
         uv = _fiducial_uv(result, i)
         scale = float(f["ring_radius_scale"][i])
@@ -478,13 +488,14 @@ def _fiducial_crops(result) -> str:
             ax.set_xlabel("u (mm)", fontsize=8)
             ax.set_ylabel("v (mm)", fontsize=8)
             ax.tick_params(labelsize=7)
+            ax.xaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))   # fewer tick objects to lay out and draw
+            ax.yaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))
             if j == 0:
                 ax.set_title(f"id {int(f['id'][i])} (row {r}, col {c}): {why}\n"
                              f"fit RMS {float(f['fit_rms'][i]):.3g}, radius scale {scale:.4f}", fontsize=8.5,
-                             loc="left")
+                             loc="left", y=1.0)         # a fixed y: no automatic title placement pass
             else:
-                ax.set_title(name, fontsize=9)
-    fig.tight_layout()
+                ax.set_title(name, fontsize=9, y=1.0)
     radii_txt = ", ".join(f"{x:g}" for x in radii)
     return img(png_b64(fig), "fiducial crops",
                 f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(picks)} detected "
@@ -518,17 +529,23 @@ def scan_report_html(result: "ScanResult") -> str:
     kind = s.get("kind", "calibration")
     title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
              else "markcal scan report — calibration plate")
+    cloud = (lambda: "\n".join(_image_section(result))) if "image_pixel_mm" in s else (lambda: _render_3d(result))
+    # the figures in two similar halves: the second in a forked process when a core is free (html.parts_in_two)
+    (quiver, hist, view), (model, crops) = parts_in_two(
+        [lambda: _quiver_figure(result), lambda: _histogram_figures(result), cloud],
+        [lambda: _model_section(result), lambda: _fiducial_crops(result)])
     parts = [
         f'<div class="verdict">{_verdict(s, kind)}</div>',
         _summary_section(result),
         "<h2>Deviations</h2>",
-        _quiver_figure(result),
-        _histogram_figures(result),
+        quiver,
+        hist,
         _stats_table(result.stats),
-        _model_section(result),
-        *(_image_section(result) if "image_pixel_mm" in s else ("<h2>Point cloud</h2>", _render_3d(result))),
+        model,
+        *(() if "image_pixel_mm" in s else ("<h2>Point cloud</h2>",)),
+        view,
         "<h2>Detected fiducials</h2>",
-        _fiducial_crops(result),
+        crops,
         _footer(),
     ]
     return page(title, parts, source=s.get("source", result.source), summary=s)
