@@ -351,9 +351,10 @@ def _check_rows(summary: dict) -> list:
         key, op, lim = parts
         v = summary.get(key)
         bad = any(f.split(" ")[0] == key for f in failed.split("; ") if f)
-        val = "–" if not isinstance(v, (int, float)) or isinstance(v, bool) else f"{v:.4g}"
+        na = v is None or isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)
+        val = "–" if na else f"{v:.4g}"
         rows.append([esc(label if label and label != key else key) + (f" <code>{esc(key)}</code>" if label and label != key else ""), val, f"{'≤' if op == '<=' else '≥'} {esc(lim)}",
-                     '<b style="color:#d9342b">out</b>' if bad else "ok"])
+                     '<b style="color:#d9342b">out</b>' if bad else ("not applicable" if na else "ok")])
     return rows
 
 
@@ -367,6 +368,8 @@ def provenance_line(summary: dict) -> str:
             prov.append(f"{k}: {esc(summary[k])}")
     if summary.get("input"):
         prov.append(f"input {esc(summary['input'])} (SHA-256 {esc(str(summary.get('input_sha256', ''))[:16])}…)")
+    if summary.get("data_time"):
+        prov.append(f"measured {esc(summary['data_time'])} (the file's own timestamp)")
     if summary.get("spec"):
         prov.append(f"spec {esc(summary['spec'])} (SHA-256 {esc(str(summary.get('spec_sha256', ''))[:16])}…)")
     if summary.get("command"):

@@ -68,8 +68,8 @@ def _summary_section(result) -> str:
     s = result.summary
     cols = result.spec.cols
     cv = num(s.get("cv_rmse_mm"))
-    if s.get("cv_rmse_std_mm") is not None:
-        cv += f" ± {num(s.get('cv_rmse_std_mm'))}"
+    if s.get("cv_rmse_std_mm") is not None:      # mean ± std in one unit (not "0.00295 mm ± 0.113 µm")
+        cv = f"{1e3 * s['cv_rmse_mm']:.2f} ± {1e3 * s['cv_rmse_std_mm']:.2f} µm"
     rows = [
         ("fiducials expected", num(s.get("n_expected"), ""), f"{result.spec.rows} × {cols} grid, "
          f"pitch {num(result.spec.pitch_mm)}"),
@@ -116,14 +116,19 @@ def _quiver_figure(result) -> str:
     mag = np.hypot(dx, dy)
     mmax = float(mag.max()) if len(mag) else 0.0
     k = _arrow_scale(mmax, spec.pitch_mm)
-    fig = new_figure(7.6, 6.6)
+    big = max(spec.rows, spec.cols) > 11                   # a 19 x 19 plate: a larger plot, smaller circles
+    fig = new_figure(10.0, 8.8) if big else new_figure(7.6, 6.6)
     ax = fig.add_subplot(111)
-    ax.scatter(x, y, s=36, facecolors="none", edgecolors="0.6", linewidths=0.8, zorder=1)
+    ax.scatter(x, y, s=14 if big else 36, facecolors="none", edgecolors="0.75", linewidths=0.6, zorder=1)
     q = ax.quiver(x, y, dx, dy, mag, angles="xy", scale_units="xy", scale=1.0 / k, cmap="viridis",
-                  width=0.004, zorder=3, clim=(0, mmax if mmax > 0 else 1))
+                  width=0.0035, zorder=3, clim=(0, mmax if mmax > 0 else 1))
     cb = fig.colorbar(q, ax=ax, shrink=0.85, pad=0.02)
     cb.set_label("|δ| (mm)")
-    key = nice_number(0.6 * mmax) if mmax > 0 else 0.1
+    key = nice_number(mmax) if mmax > 0 else 0.1         # about the longest arrow, so it can be compared
+    hx, hy = spec.half_extent_mm
+    m = 0.9 * spec.pitch_mm
+    ax.set_xlim(-hx - m, hx + m)
+    ax.set_ylim(-hy - m, hy + m)                           # before arrow_key, which extends y below the data
     arrow_key(ax, q, key, f"{key:g} mm (magnified {k:g}×)")
     if result.missing_ids:
         _, _, q_all = nominal_grid(spec)
@@ -131,10 +136,6 @@ def _quiver_figure(result) -> str:
         ax.scatter(miss[:, 0], miss[:, 1], marker="x", s=70, c="red", linewidths=2, zorder=4,
                    label="not detected")
         ax.legend(loc="upper left", bbox_to_anchor=(0.0, 1.07), fontsize=8, frameon=False)
-    hx, hy = spec.half_extent_mm
-    m = 0.9 * spec.pitch_mm
-    ax.set_xlim(-hx - m, hx + m)
-    ax.set_ylim(-hy - m, hy + m)
     ax.set_aspect("equal")
     ax.set_xlabel("x nominal (mm)")
     ax.set_ylabel("y nominal (mm)")
@@ -151,6 +152,7 @@ def _bins(v: np.ndarray) -> int:
 
 
 def _histogram_figures(result) -> str:
+    from matplotlib.ticker import MaxNLocator
     f = result.fiducials
     dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
     mag = np.hypot(dx, dy)
@@ -158,6 +160,7 @@ def _histogram_figures(result) -> str:
     for i, (v, lab, col) in enumerate(((dx, "δx (mm)", "#3b7dd8"), (dy, "δy (mm)", "#e07b39"),
                                        (mag, "|δ| (mm)", "#4c9a4c"))):
         ax = fig.add_subplot(1, 3, i + 1)
+        ax.xaxis.set_major_locator(MaxNLocator(5))          # "−0.006−0.004…" ran together at 7 ticks
         if len(v):
             ax.hist(v, bins=_bins(v), color=col, edgecolor="white", linewidth=0.5)
             ax.axvline(float(np.mean(v)), color="k", lw=1, ls="--")
