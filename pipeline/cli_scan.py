@@ -67,7 +67,7 @@ def cmd_render_scan(args) -> int:
     opts = ScanOptions(z_convention=args.z_convention, n_contaminated=args.contaminated,
                        rotation_deg=args.rotation_deg, mirror=args.mirror)
     say(f"rendering {'validation' if correction else 'calibration'} plate, seed {args.seed}")
-    r = render_scan(args.seed, spec, opts, machine=machine, correction=correction)
+    r = render_scan(args.seed, spec, opts, machine=machine, correction=correction, say=say)
     r.truth["machine_seed"] = int(mseed)
     say(f"writing {len(r.xyz_mm):,} points")
     save_scan(args.out, r, "cloud", formats=tuple(args.formats.split(",")))
