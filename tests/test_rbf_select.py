@@ -1,7 +1,7 @@
 """OLS forward selection (stages/rbf.py): each chosen centre is the largest error reduction.
 
-The batched selection (classical Gram-Schmidt on the chosen columns, several folds at once)
-must choose what the textbook algorithm chooses; both are checked against brute force.
+The compiled selection (modified Gram-Schmidt, stages/rbf._ols_kernel) must choose what the
+textbook algorithm chooses: checked against brute force.
 """
 import numpy as np
 import pytest
