@@ -6,10 +6,13 @@ the raw samples around each candidate (sub-pixel centres).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
+from numba import njit
 from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage.feature import peak_local_max
@@ -240,36 +243,140 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     """Batched Levenberg-Marquardt with Huber IRLS weights; ``free`` masks parameters.
 
     A step is kept only where it lowers the weighted cost; elsewhere the
-    damping grows, so no fit runs away.
+    damping grows, so no fit runs away. Each row's samples must be packed at
+    its front (:func:`_compact`). Compiled (:func:`_lm_rows`); the robust scale
+    of wide rows (fine images) comes from every ``sub``-th sample.
     """
-    lam = np.full(len(p), 1e-3)
-    eye = np.eye(8)
-    fixed = np.diag(1.0 - free)
-    scale = np.ones(len(p))
-    for _ in range(n_iter):
-        f, jac = _model(p, u, v, radii)
-        r = np.where(mask, y - f, 0.0)
-        absr = np.abs(r)
-        sub = max(1, absr.shape[1] // 2048)       # wide rows (fine images): the scale from every sub-th sample
-        scale = np.maximum(_masked_median(absr[:, ::sub], mask[:, ::sub]) * 1.4826, 1e-9)
-        wts = np.where(mask, np.minimum(1.0, huber_k * scale[:, None] / np.maximum(absr, 1e-12)), 0.0)
-        cost = (wts * r * r).sum(axis=1)
-        jac = jac * free
-        jwt = (jac * wts[..., None]).transpose(0, 2, 1)
-        jtj = jwt @ jac
-        jtr = (jwt @ r[..., None])[..., 0]
-        diag = np.einsum("kii->ki", jtj)
-        a = jtj + (lam[:, None] * (diag + 1e-12))[:, :, None] * eye + fixed
-        step = np.linalg.solve(a, jtr[..., None])[..., 0]
-        trial = p + step
-        trial[:, 5] = np.clip(trial[:, 5], 0.02, 0.4)
-        f_new, _ = _model(trial, u, v, radii, jacobian=False)
-        r_new = np.where(mask, y - f_new, 0.0)
-        better = (wts * r_new * r_new).sum(axis=1) < cost
-        better &= np.all(np.isfinite(trial), axis=1) & (np.abs(trial[:, 4]) < 0.25)
-        p = np.where(better[:, None], trial, p)
-        lam = np.where(better, lam / 3, lam * 4)
+    sub = max(1, mask.shape[1] // 2048)
+    p = np.array(p, float)
+    u, v, y = (np.ascontiguousarray(a, float) for a in (u, v, y))
+    counts = mask.sum(axis=1).astype(np.int64)
+    rad, fr = np.asarray(radii, float), np.asarray(free, float)
+    scale = np.empty(len(p))
+
+    def rows(a, b):
+        scale[a:b] = _lm_rows(p[a:b], u[a:b], v[a:b], y[a:b], counts[a:b], rad, int(n_iter), fr, float(huber_k), sub)
+
+    # the kernel releases the GIL: blocks of rows on numba's thread count (1 in batch workers)
+    workers = min(len(p), max(1, int(numba.config.NUMBA_NUM_THREADS)))
+    cuts = np.linspace(0, len(p), workers + 1).astype(int)
+    if workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(rows, cuts[:-1], cuts[1:]))
+    else:
+        rows(0, len(p))
     return p, scale
+
+
+@njit(cache=True, nogil=True)
+def _ring_model(p, u, v, radii, jac):  # pragma: no cover - compiled
+    """Double-ring model at samples ``u``, ``v`` (one row); fills ``jac`` (n, 8) unless it has no rows."""
+    cu, cv, b, a, m, w, gu, gv = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
+    n = len(u)
+    f = np.empty(n)
+    want = jac.shape[0] > 0
+    iw = 1.0 / w
+    iw2 = iw * iw
+    iw3 = iw2 * iw
+    for i in range(n):
+        du = u[i] - cu
+        dv = v[i] - cv
+        rho = np.sqrt(du * du + dv * dv) + 1e-12
+        g = 0.0
+        dg_drho = 0.0
+        dg_dm = 0.0
+        dg_dw = 0.0
+        for r in radii:
+            t = rho - r * (1 + m)
+            tw = t * iw
+            e = np.exp(-0.5 * tw * tw)
+            g += e
+            if want:
+                et = e * t
+                dg_drho -= et * iw2
+                dg_dm += et * iw2 * r
+                dg_dw += et * t * iw3
+        f[i] = b + a * g + gu * du + gv * dv
+        if want:
+            irho = 1.0 / rho
+            jac[i, 0] = a * dg_drho * (-du * irho) - gu
+            jac[i, 1] = a * dg_drho * (-dv * irho) - gv
+            jac[i, 2] = 1.0
+            jac[i, 3] = g
+            jac[i, 4] = a * dg_dm
+            jac[i, 5] = a * dg_dw
+            jac[i, 6] = du
+            jac[i, 7] = dv
+    return f
+
+
+@njit(cache=True, nogil=True)
+def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: no cover - compiled
+    """Levenberg-Marquardt of every row of ``P`` (k, 8) in place; returns the robust residual scales."""
+    k = P.shape[0]
+    scales = np.ones(k)
+    no_jac = np.empty((0, 8))
+    for row in range(k):
+        n = counts[row]
+        u = U[row, :n]
+        v = V[row, :n]
+        y = Y[row, :n]
+        p = P[row].copy()
+        lam = 1e-3
+        scale = 1.0
+        jac = np.empty((n, 8))
+        absr = np.empty(n)
+        wts = np.empty(n)
+        for _ in range(n_iter):
+            f = _ring_model(p, u, v, radii, jac)
+            for i in range(n):
+                absr[i] = abs(y[i] - f[i])
+            ns = (n + sub - 1) // sub
+            if ns > 0:
+                scale = max(np.partition(absr[::sub], ns // 2)[ns // 2] * 1.4826, 1e-9)
+            else:
+                scale = 1e-9
+            cost = 0.0
+            jtj = np.zeros((8, 8))
+            jtr = np.zeros(8)
+            jf = np.empty(8)
+            for i in range(n):
+                r = y[i] - f[i]
+                wt = min(1.0, huber_k * scale / max(absr[i], 1e-12))
+                wts[i] = wt
+                cost += wt * r * r
+                for a in range(8):
+                    jf[a] = jac[i, a] * free[a]
+                for a in range(8):
+                    ja = jf[a] * wt
+                    jtr[a] += ja * r
+                    for b in range(a, 8):
+                        jtj[a, b] += ja * jf[b]
+            for a in range(8):
+                for b in range(a):
+                    jtj[a, b] = jtj[b, a]
+            A = jtj.copy()
+            for a in range(8):
+                A[a, a] += lam * (jtj[a, a] + 1e-12) + (1.0 - free[a])
+            step = np.linalg.solve(A, jtr)
+            trial = p + step
+            trial[5] = min(max(trial[5], 0.02), 0.4)
+            f_new = _ring_model(trial, u, v, radii, no_jac)
+            c_new = 0.0
+            for i in range(n):
+                d = y[i] - f_new[i]
+                c_new += wts[i] * d * d
+            ok = c_new < cost and abs(trial[4]) < 0.25
+            for a in range(8):
+                ok = ok and np.isfinite(trial[a])
+            if ok:
+                p = trial
+                lam /= 3
+            else:
+                lam *= 4
+        P[row] = p
+        scales[row] = scale
+    return scales
 
 
 def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
