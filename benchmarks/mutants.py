@@ -226,9 +226,9 @@ MUTANTS = [
       "om"),
     # --- RBF network (paper 004 eqs. 7-8, OLS) --------------------------------------------------
     M("rbf-ols-no-normalisation", "dropped-term", "stages/rbf.py",
-      "(num * num).sum(axis=1) / np.where(good, norms, 1.0)", "(num * num).sum(axis=1)", "rbf"),
+      "                e /= norms[i]", "                e /= 1.0", "rbf"),
     M("rbf-ols-no-bias", "dropped-term", "stages/rbf.py",
-      "P -= col_mean                      # orthogonal to the bias column", "pass", "rbf"),
+      "PT = np.ascontiguousarray((P - col_mean).T)", "PT = np.ascontiguousarray(P.T)", "rbf"),
     M("rbf-kernel-width", "unit-factor", "stages/rbf.py",
       "k = -0.5 / model.spread_mm ** 2", "k = -1.0 / model.spread_mm ** 2", "rbf"),
     M("rbf-design-width", "unit-factor", "stages/rbf.py",
