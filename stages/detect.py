@@ -175,27 +175,70 @@ class RingFit:
     ok: np.ndarray
 
 
-def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float, stride: int = 1):
-    """Raw samples (u, v, I) in a square window around each centre (every ``stride``-th cell); mask = valid & inside."""
-    half = int(np.ceil(radius_mm / raster.pixel_mm)) + 1
+def _window(raster: Raster, uv0_mm: np.ndarray, reach_mm: float, inner_mm: float, stride: int = 1):
+    """Raw samples (u, v, I) of the valid cells (every ``stride``-th) in a square window around each
+    centre that lie between ``inner_mm`` and ``reach_mm`` of it, packed at the front of each row, in one
+    compiled pass.
+
+    Returns
+    -------
+    mask, u, v, i : ndarray, shape (k, width)
+        Row ``j`` holds its samples in its first ``mask[j].sum()`` entries.
+    """
+    half = int(np.ceil(reach_mm / raster.pixel_mm)) + 1
     offs = np.arange(-(half // stride) * stride, half + 1, stride)
-    cr = np.rint(raster.to_pixel(uv0_mm)).astype(int)
-    rr = cr[:, 1, None, None] + offs[None, :, None]
-    cc = cr[:, 0, None, None] + offs[None, None, :]
-    nrow, ncol = raster.intensity.shape
-    inb = (rr >= 0) & (rr < nrow) & (cc >= 0) & (cc < ncol)
-    rr = np.clip(rr, 0, nrow - 1)
-    cc = np.clip(cc, 0, ncol - 1)
-    k = len(uv0_mm)
-    su, sv, sval = raster.samples(rr, cc)
-    u = np.broadcast_to(su, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
-    v = np.broadcast_to(sv, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
-    i = raster.intensity[rr, cc].reshape(k, -1).astype(np.float64)
-    m = (np.broadcast_to(sval, np.broadcast_shapes(rr.shape, cc.shape)) & inb).reshape(k, -1)
-    u = np.where(m, u, 0.0)
-    v = np.where(m, v, 0.0)
-    i = np.where(m, i, 0.0)
-    return u, v, i, m
+    cr = np.rint(raster.to_pixel(uv0_mm)).astype(np.int64)
+    uv0 = np.ascontiguousarray(uv0_mm, float)
+    if raster.u_mm is None:
+        empty = np.zeros((0, 0))
+        u, v, i, n = _window_kernel(empty, empty, np.zeros((0, 0), bool), raster.intensity, cr, offs, uv0,
+                                    float(reach_mm), float(inner_mm), True, raster.pixel_mm, raster.u0_mm,
+                                    raster.v0_mm)
+    else:
+        u, v, i, n = _window_kernel(raster.u_mm, raster.v_mm, raster.valid, raster.intensity, cr, offs, uv0,
+                                    float(reach_mm), float(inner_mm), False, raster.pixel_mm, raster.u0_mm,
+                                    raster.v0_mm)
+    width = max(int(n.max()) if len(n) else 1, 1)
+    mask = np.arange(width)[None, :] < n[:, None]
+    return mask, u[:, :width], v[:, :width], i[:, :width]
+
+
+@njit(cache=True, nogil=True)
+def _window_kernel(um, vm, valid, inten, cr, offs, uv0, reach, inner, centres, pixel, u0, v0):  # pragma: no cover
+    """Samples within (inner, reach) of each centre, row-major over the window; see :func:`_window`."""
+    k = len(cr)
+    m = len(offs)
+    nrow, ncol = inten.shape
+    U = np.zeros((k, m * m))
+    V = np.zeros((k, m * m))
+    Y = np.zeros((k, m * m))
+    n = np.zeros(k, np.int64)
+    for j in range(k):
+        c = 0
+        for a in range(m):
+            r = cr[j, 1] + offs[a]
+            if r < 0 or r >= nrow:
+                continue
+            for b in range(m):
+                q = cr[j, 0] + offs[b]
+                if q < 0 or q >= ncol:
+                    continue
+                if centres:
+                    su = (q + 0.5) * pixel + u0
+                    sv = (r + 0.5) * pixel + v0
+                else:
+                    if not valid[r, q]:
+                        continue
+                    su = um[r, q]
+                    sv = vm[r, q]
+                rho = np.hypot(su - uv0[j, 0], sv - uv0[j, 1])
+                if rho < reach and rho > inner:
+                    U[j, c] = su
+                    V[j, c] = sv
+                    Y[j, c] = inten[r, q]
+                    c += 1
+        n[j] = c
+    return U, V, Y, n
 
 
 def _model(p, u, v, radii, jacobian=True):
@@ -232,20 +275,12 @@ def _masked_median(a, mask):
     return np.where(cnt > 0, mid, 0.0)
 
 
-def _compact(mask, *arrays):
-    """Move each row's masked samples to the front and drop all-empty columns."""
-    order = np.argsort(~mask, axis=1, kind="stable")
-    width = max(int(mask.sum(axis=1).max()), 1)
-    order = order[:, :width]
-    return [np.take_along_axis(a, order, axis=1) for a in (mask, *arrays)]
-
-
 def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     """Batched Levenberg-Marquardt with Huber IRLS weights; ``free`` masks parameters.
 
     A step is kept only where it lowers the weighted cost; elsewhere the
     damping grows, so no fit runs away. Each row's samples must be packed at
-    its front (:func:`_compact`). Compiled (:func:`_lm_rows`); the robust scale
+    its front (:func:`_window`). Compiled (:func:`_lm_rows`); the robust scale
     of wide rows (fine images) comes from every ``sub``-th sample.
     """
     sub = max(1, mask.shape[1] // 2048)
@@ -316,7 +351,6 @@ def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: 
     """Levenberg-Marquardt of every row of ``P`` (k, 8) in place; returns the robust residual scales."""
     k = P.shape[0]
     scales = np.ones(k)
-    no_jac = np.empty((0, 8))
     for row in range(k):
         n = counts[row]
         u = U[row, :n]
@@ -326,10 +360,11 @@ def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: 
         lam = 1e-3
         scale = 1.0
         jac = np.empty((n, 8))
+        jac_new = np.empty((n, 8))
         absr = np.empty(n)
         wts = np.empty(n)
+        f = _ring_model(p, u, v, radii, jac)        # the model and Jacobian at p; a kept step brings its own
         for _ in range(n_iter):
-            f = _ring_model(p, u, v, radii, jac)
             for i in range(n):
                 absr[i] = abs(y[i] - f[i])
             ns = (n + sub - 1) // sub
@@ -362,7 +397,7 @@ def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: 
             step = np.linalg.solve(A, jtr)
             trial = p + step
             trial[5] = min(max(trial[5], 0.02), 0.4)
-            f_new = _ring_model(trial, u, v, radii, no_jac)
+            f_new = _ring_model(trial, u, v, radii, jac_new)
             c_new = 0.0
             for i in range(n):
                 d = y[i] - f_new[i]
@@ -372,6 +407,8 @@ def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: 
                 ok = ok and np.isfinite(trial[a])
             if ok:
                 p = trial
+                f = f_new
+                jac, jac_new = jac_new, jac
                 lam /= 3
             else:
                 lam *= 4
@@ -420,9 +457,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
     free_b = np.ones(8)
     for s in range(0, len(uv0_mm), chunk):
         uv0 = np.asarray(uv0_mm[s:s + chunk], float)
-        u, v, y, valid = _gather(first, uv0, reach, stride1)
-        rho0 = np.hypot(u - uv0[:, :1], v - uv0[:, 1:])
-        mask, u, v, y = _compact(valid & (rho0 < reach) & (rho0 > inner), u, v, y)
+        mask, u, v, y = _window(first, uv0, reach, inner, stride1)
         b0 = _masked_median(y, mask)
         lo = -_masked_median(-np.where(mask, y, -np.inf), mask & (y < b0[:, None]))
         p = np.zeros((len(uv0), 8))
@@ -432,9 +467,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
         p[:, 5] = 0.15
         p, _ = _gauss_newton(p, u, v, y, mask, radii, 6, free_a)
         # re-centre the window on the new centre before the fine fit
-        u, v, y, valid = _gather(raster, p[:, :2], reach_b, stride)
-        rho1 = np.hypot(u - p[:, :1], v - p[:, 1:2])
-        mask, u, v, y = _compact(valid & (rho1 < reach_b) & (rho1 > inner_b), u, v, y)
+        mask, u, v, y = _window(raster, p[:, :2], reach_b, inner_b, stride)
         p[:, 5] = np.clip(p[:, 5], 0.03, 0.1)
         p, scale = _gauss_newton(p, u, v, y, mask, radii, 7, free_b)
         out["uv"].append(p[:, :2])
