@@ -241,32 +241,6 @@ def _window_kernel(um, vm, valid, inten, cr, offs, uv0, reach, inner, centres, p
     return U, V, Y, n
 
 
-def _model(p, u, v, radii, jacobian=True):
-    """Double-ring intensity model and (unless ``jacobian`` is False) its Jacobian (k, n, 8)."""
-    cu, cv, b, a, m, w, gu, gv = (p[:, j, None] for j in range(8))
-    du, dv = u - cu, v - cv
-    rho = np.sqrt(du * du + dv * dv) + 1e-12
-    g = np.zeros_like(rho)
-    dg_drho = np.zeros_like(rho)
-    dg_dm = np.zeros_like(rho)
-    dg_dw = np.zeros_like(rho)
-    for r in radii:
-        t = rho - r * (1 + m)
-        e = np.exp(-0.5 * (t / w) ** 2)
-        g += e
-        dg_drho += -e * t / w ** 2
-        dg_dm += e * t / w ** 2 * r
-        dg_dw += e * t * t / w ** 3
-    f = b + a * g + gu * du + gv * dv
-    if not jacobian:
-        return f, None
-    jac = np.stack([
-        a * dg_drho * (-du / rho) - gu,
-        a * dg_drho * (-dv / rho) - gv,
-        np.ones_like(rho), g, a * dg_dm, a * dg_dw, du, dv], axis=-1)
-    return f, jac
-
-
 def _masked_median(a, mask):
     """Row-wise median of ``a`` over ``mask`` (0 for empty rows)."""
     srt = np.sort(np.where(mask, a, np.inf), axis=1)
@@ -306,7 +280,10 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
 
 @njit(cache=True, nogil=True)
 def _ring_model(p, u, v, radii, jac):  # pragma: no cover - compiled
-    """Double-ring model at samples ``u``, ``v`` (one row); fills ``jac`` (n, 8) unless it has no rows."""
+    """Double-ring model at samples ``u``, ``v`` (one row); fills ``jac`` (n, 8) unless it has no rows.
+
+    b + a * sum_k exp(-(rho - r_k (1 + m))^2 / (2 w^2)) + gu * du + gv * dv, p = (cu, cv, b, a, m, w, gu, gv).
+    """
     cu, cv, b, a, m, w, gu, gv = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
     n = len(u)
     f = np.empty(n)
