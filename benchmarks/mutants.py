@@ -30,6 +30,7 @@ import importlib.abc
 import importlib.util
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -226,9 +227,9 @@ MUTANTS = [
       "om"),
     # --- RBF network (paper 004 eqs. 7-8, OLS) --------------------------------------------------
     M("rbf-ols-no-normalisation", "dropped-term", "stages/rbf.py",
-      "(num * num).sum(axis=1) / np.where(good, norms, 1.0)", "(num * num).sum(axis=1)", "rbf"),
+      "                e /= norms[i]", "                e /= 1.0", "rbf"),
     M("rbf-ols-no-bias", "dropped-term", "stages/rbf.py",
-      "P -= col_mean                      # orthogonal to the bias column", "pass", "rbf"),
+      "PT = np.ascontiguousarray((P - col_mean).T)", "PT = np.ascontiguousarray(P.T)", "rbf"),
     M("rbf-kernel-width", "unit-factor", "stages/rbf.py",
       "k = -0.5 / model.spread_mm ** 2", "k = -1.0 / model.spread_mm ** 2", "rbf"),
     M("rbf-design-width", "unit-factor", "stages/rbf.py",
@@ -407,12 +408,13 @@ def mutated_source(m: Mutant) -> str:
 
 
 def run_mutant(m: Mutant, python: str, workdir: str, timeout_s: float) -> tuple:
-    spec = os.path.join(workdir, m.id + ".json")
+    safe = re.sub(r"[^\w.-]+", "_", m.id)          # the null mutants' ids hold their test lists ('/', quotes)
+    spec = os.path.join(workdir, safe + ".json")
     with open(spec, "w", encoding="utf-8") as fh:
         json.dump({"module": module_name(m.file), "path": str(REPO / m.file), "source": mutated_source(m)}, fh)
     # numba caches compiled code by source file, not content: each mutant gets its own cache, or one
     # mutant of a jitted module could run another's (or the original's) machine code
-    env = dict(os.environ, **{ENV_KEY: spec, "NUMBA_CACHE_DIR": os.path.join(workdir, m.id + "-numba"),
+    env = dict(os.environ, **{ENV_KEY: spec, "NUMBA_CACHE_DIR": os.path.join(workdir, safe + "-numba"),
                               "PYTHONPATH": os.pathsep.join(
         [str(REPO / "benchmarks")] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])})
     cmd = [python, "-m", "pytest", "-x", "-q", "-rfE", "-p", "mutants", "-p", "no:cacheprovider", *test_args(m.tests)]

@@ -25,13 +25,16 @@ IMAGE_TESTS = ["tests/test_plate_image.py", "-k", "1200_dpi or pixel_size_option
 
 MUTANTS_SCANSPEED = [
     {"name": "rbf-err-not-normalised", "file": "stages/rbf.py",
-     "old": "(num * num).sum(axis=1) / np.where(good, norms, 1.0)", "new": "(num * num).sum(axis=1)",
+     "old": "                e /= norms[i]", "new": "                e /= 1.0",
      "tests": RBF_TESTS},
     {"name": "rbf-coefficient-unscaled", "file": "stages/rbf.py",
-     "old": "coef = (pj @ P) / nj", "new": "coef = (pj @ P)", "tests": RBF_TESTS},
+     "old": "coef = s / nj", "new": "coef = s", "tests": RBF_TESTS},
     {"name": "plane-rotation-transposed", "file": "stages/plane.py",
      "old": 'np.einsum("ij,kj->ik", xyz_mm - plane.origin_mm, plane.rotation)',
      "new": 'np.einsum("ij,jk->ik", xyz_mm - plane.origin_mm, plane.rotation)', "tests": PLANE_TESTS},
+    {"name": "projection-rotation-transposed", "file": "stages/project.py",
+     "old": "u[m] = dx * rot[0, 0] + dy * rot[0, 1] + dz * rot[0, 2]",
+     "new": "u[m] = dx * rot[0, 0] + dy * rot[1, 0] + dz * rot[2, 0]", "tests": PLANE_TESTS},
     {"name": "plane-normal-side", "file": "stages/plane.py",
      "old": "    if n[2] < 0:\n        n = -n", "new": "    if n[2] > 0:\n        n = -n", "tests": PLANE_TESTS},
     {"name": "detect-no-huber", "file": "stages/detect.py",

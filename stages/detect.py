@@ -6,16 +6,20 @@ the raw samples around each candidate (sub-pixel centres).
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
+from numba import njit
 from scipy import ndimage
 from scipy.spatial import cKDTree
 from skimage.feature import peak_local_max
 from skimage.transform import hough_circle
 
 from .project import Raster
+from .quantile import percentiles
 
 
 @dataclass(frozen=True)
@@ -47,19 +51,19 @@ def filter_raster(raster: Raster, median_px: int = 5) -> np.ndarray:
         fill = todo & (den > 0)
         out[fill] = num[fill] / den[fill]
         todo &= ~fill
-    out[todo] = np.median(img[raster.valid])
+    out[todo] = percentiles(img[raster.valid], [50])[0]      # np.median without sorting every cell
     return cv2.medianBlur(out, median_px)
 
 
 def edge_images(filtered: np.ndarray, close_px: int = 5, sigma_px: float = 1.0) -> EdgeImages:
     """Canny edges of the filtered image, closed and hole-filled (paper Fig. 4, centre)."""
-    lo, hi = np.percentile(filtered, [0.5, 99.5])
+    lo, hi = percentiles(filtered.ravel(), [0.5, 99.5])
     img8 = np.clip((filtered - lo) / max(hi - lo, 1e-12) * 255, 0, 255).astype(np.uint8)
     img8 = cv2.GaussianBlur(img8, (0, 0), sigma_px)
     gx = cv2.Sobel(img8, cv2.CV_32F, 1, 0)
     gy = cv2.Sobel(img8, cv2.CV_32F, 0, 1)
     mag = np.hypot(gx, gy)
-    high = float(np.percentile(mag, 97))
+    high = float(percentiles(mag.ravel(), [97])[0])
     edges = cv2.Canny(img8, 0.4 * high, high, L2gradient=True) > 0
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (close_px, close_px))
     closed = cv2.morphologyEx(edges.astype(np.uint8), cv2.MORPH_CLOSE, kernel)
@@ -171,53 +175,70 @@ class RingFit:
     ok: np.ndarray
 
 
-def _gather(raster: Raster, uv0_mm: np.ndarray, radius_mm: float, stride: int = 1):
-    """Raw samples (u, v, I) in a square window around each centre (every ``stride``-th cell); mask = valid & inside."""
-    half = int(np.ceil(radius_mm / raster.pixel_mm)) + 1
+def _window(raster: Raster, uv0_mm: np.ndarray, reach_mm: float, inner_mm: float, stride: int = 1):
+    """Raw samples (u, v, I) of the valid cells (every ``stride``-th) in a square window around each
+    centre that lie between ``inner_mm`` and ``reach_mm`` of it, packed at the front of each row, in one
+    compiled pass.
+
+    Returns
+    -------
+    mask, u, v, i : ndarray, shape (k, width)
+        Row ``j`` holds its samples in its first ``mask[j].sum()`` entries.
+    """
+    half = int(np.ceil(reach_mm / raster.pixel_mm)) + 1
     offs = np.arange(-(half // stride) * stride, half + 1, stride)
-    cr = np.rint(raster.to_pixel(uv0_mm)).astype(int)
-    rr = cr[:, 1, None, None] + offs[None, :, None]
-    cc = cr[:, 0, None, None] + offs[None, None, :]
-    nrow, ncol = raster.intensity.shape
-    inb = (rr >= 0) & (rr < nrow) & (cc >= 0) & (cc < ncol)
-    rr = np.clip(rr, 0, nrow - 1)
-    cc = np.clip(cc, 0, ncol - 1)
-    k = len(uv0_mm)
-    su, sv, sval = raster.samples(rr, cc)
-    u = np.broadcast_to(su, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
-    v = np.broadcast_to(sv, np.broadcast_shapes(rr.shape, cc.shape)).reshape(k, -1)
-    i = raster.intensity[rr, cc].reshape(k, -1).astype(np.float64)
-    m = (np.broadcast_to(sval, np.broadcast_shapes(rr.shape, cc.shape)) & inb).reshape(k, -1)
-    u = np.where(m, u, 0.0)
-    v = np.where(m, v, 0.0)
-    i = np.where(m, i, 0.0)
-    return u, v, i, m
+    cr = np.rint(raster.to_pixel(uv0_mm)).astype(np.int64)
+    uv0 = np.ascontiguousarray(uv0_mm, float)
+    if raster.u_mm is None:
+        empty = np.zeros((0, 0))
+        u, v, i, n = _window_kernel(empty, empty, np.zeros((0, 0), bool), raster.intensity, cr, offs, uv0,
+                                    float(reach_mm), float(inner_mm), True, raster.pixel_mm, raster.u0_mm,
+                                    raster.v0_mm)
+    else:
+        u, v, i, n = _window_kernel(raster.u_mm, raster.v_mm, raster.valid, raster.intensity, cr, offs, uv0,
+                                    float(reach_mm), float(inner_mm), False, raster.pixel_mm, raster.u0_mm,
+                                    raster.v0_mm)
+    width = max(int(n.max()) if len(n) else 1, 1)
+    mask = np.arange(width)[None, :] < n[:, None]
+    return mask, u[:, :width], v[:, :width], i[:, :width]
 
 
-def _model(p, u, v, radii, jacobian=True):
-    """Double-ring intensity model and (unless ``jacobian`` is False) its Jacobian (k, n, 8)."""
-    cu, cv, b, a, m, w, gu, gv = (p[:, j, None] for j in range(8))
-    du, dv = u - cu, v - cv
-    rho = np.sqrt(du * du + dv * dv) + 1e-12
-    g = np.zeros_like(rho)
-    dg_drho = np.zeros_like(rho)
-    dg_dm = np.zeros_like(rho)
-    dg_dw = np.zeros_like(rho)
-    for r in radii:
-        t = rho - r * (1 + m)
-        e = np.exp(-0.5 * (t / w) ** 2)
-        g += e
-        dg_drho += -e * t / w ** 2
-        dg_dm += e * t / w ** 2 * r
-        dg_dw += e * t * t / w ** 3
-    f = b + a * g + gu * du + gv * dv
-    if not jacobian:
-        return f, None
-    jac = np.stack([
-        a * dg_drho * (-du / rho) - gu,
-        a * dg_drho * (-dv / rho) - gv,
-        np.ones_like(rho), g, a * dg_dm, a * dg_dw, du, dv], axis=-1)
-    return f, jac
+@njit(cache=True, nogil=True)
+def _window_kernel(um, vm, valid, inten, cr, offs, uv0, reach, inner, centres, pixel, u0, v0):  # pragma: no cover
+    """Samples within (inner, reach) of each centre, row-major over the window; see :func:`_window`."""
+    k = len(cr)
+    m = len(offs)
+    nrow, ncol = inten.shape
+    U = np.zeros((k, m * m))
+    V = np.zeros((k, m * m))
+    Y = np.zeros((k, m * m))
+    n = np.zeros(k, np.int64)
+    for j in range(k):
+        c = 0
+        for a in range(m):
+            r = cr[j, 1] + offs[a]
+            if r < 0 or r >= nrow:
+                continue
+            for b in range(m):
+                q = cr[j, 0] + offs[b]
+                if q < 0 or q >= ncol:
+                    continue
+                if centres:
+                    su = (q + 0.5) * pixel + u0
+                    sv = (r + 0.5) * pixel + v0
+                else:
+                    if not valid[r, q]:
+                        continue
+                    su = um[r, q]
+                    sv = vm[r, q]
+                rho = np.hypot(su - uv0[j, 0], sv - uv0[j, 1])
+                if rho < reach and rho > inner:
+                    U[j, c] = su
+                    V[j, c] = sv
+                    Y[j, c] = inten[r, q]
+                    c += 1
+        n[j] = c
+    return U, V, Y, n
 
 
 def _masked_median(a, mask):
@@ -228,48 +249,149 @@ def _masked_median(a, mask):
     return np.where(cnt > 0, mid, 0.0)
 
 
-def _compact(mask, *arrays):
-    """Move each row's masked samples to the front and drop all-empty columns."""
-    order = np.argsort(~mask, axis=1, kind="stable")
-    width = max(int(mask.sum(axis=1).max()), 1)
-    order = order[:, :width]
-    return [np.take_along_axis(a, order, axis=1) for a in (mask, *arrays)]
-
-
 def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     """Batched Levenberg-Marquardt with Huber IRLS weights; ``free`` masks parameters.
 
     A step is kept only where it lowers the weighted cost; elsewhere the
-    damping grows, so no fit runs away.
+    damping grows, so no fit runs away. Each row's samples must be packed at
+    its front (:func:`_window`). Compiled (:func:`_lm_rows`); the robust scale
+    of wide rows (fine images) comes from every ``sub``-th sample.
     """
-    lam = np.full(len(p), 1e-3)
-    eye = np.eye(8)
-    fixed = np.diag(1.0 - free)
-    scale = np.ones(len(p))
-    for _ in range(n_iter):
-        f, jac = _model(p, u, v, radii)
-        r = np.where(mask, y - f, 0.0)
-        absr = np.abs(r)
-        sub = max(1, absr.shape[1] // 2048)       # wide rows (fine images): the scale from every sub-th sample
-        scale = np.maximum(_masked_median(absr[:, ::sub], mask[:, ::sub]) * 1.4826, 1e-9)
-        wts = np.where(mask, np.minimum(1.0, huber_k * scale[:, None] / np.maximum(absr, 1e-12)), 0.0)
-        cost = (wts * r * r).sum(axis=1)
-        jac = jac * free
-        jwt = (jac * wts[..., None]).transpose(0, 2, 1)
-        jtj = jwt @ jac
-        jtr = (jwt @ r[..., None])[..., 0]
-        diag = np.einsum("kii->ki", jtj)
-        a = jtj + (lam[:, None] * (diag + 1e-12))[:, :, None] * eye + fixed
-        step = np.linalg.solve(a, jtr[..., None])[..., 0]
-        trial = p + step
-        trial[:, 5] = np.clip(trial[:, 5], 0.02, 0.4)
-        f_new, _ = _model(trial, u, v, radii, jacobian=False)
-        r_new = np.where(mask, y - f_new, 0.0)
-        better = (wts * r_new * r_new).sum(axis=1) < cost
-        better &= np.all(np.isfinite(trial), axis=1) & (np.abs(trial[:, 4]) < 0.25)
-        p = np.where(better[:, None], trial, p)
-        lam = np.where(better, lam / 3, lam * 4)
+    sub = max(1, mask.shape[1] // 2048)
+    p = np.array(p, float)
+    u, v, y = (np.ascontiguousarray(a, float) for a in (u, v, y))
+    counts = mask.sum(axis=1).astype(np.int64)
+    rad, fr = np.asarray(radii, float), np.asarray(free, float)
+    scale = np.empty(len(p))
+
+    def rows(a, b):
+        scale[a:b] = _lm_rows(p[a:b], u[a:b], v[a:b], y[a:b], counts[a:b], rad, int(n_iter), fr, float(huber_k), sub)
+
+    # the kernel releases the GIL: blocks of rows on numba's thread count (1 in batch workers)
+    workers = min(len(p), max(1, int(numba.config.NUMBA_NUM_THREADS)))
+    cuts = np.linspace(0, len(p), workers + 1).astype(int)
+    if workers > 1:
+        with ThreadPoolExecutor(workers) as pool:
+            list(pool.map(rows, cuts[:-1], cuts[1:]))
+    else:
+        rows(0, len(p))
     return p, scale
+
+
+@njit(cache=True, nogil=True)
+def _ring_model(p, u, v, radii, jac):  # pragma: no cover - compiled
+    """Double-ring model at samples ``u``, ``v`` (one row); fills ``jac`` (n, 8) unless it has no rows.
+
+    b + a * sum_k exp(-(rho - r_k (1 + m))^2 / (2 w^2)) + gu * du + gv * dv, p = (cu, cv, b, a, m, w, gu, gv).
+    """
+    cu, cv, b, a, m, w, gu, gv = p[0], p[1], p[2], p[3], p[4], p[5], p[6], p[7]
+    n = len(u)
+    f = np.empty(n)
+    want = jac.shape[0] > 0
+    iw = 1.0 / w
+    iw2 = iw * iw
+    iw3 = iw2 * iw
+    for i in range(n):
+        du = u[i] - cu
+        dv = v[i] - cv
+        rho = np.sqrt(du * du + dv * dv) + 1e-12
+        g = 0.0
+        dg_drho = 0.0
+        dg_dm = 0.0
+        dg_dw = 0.0
+        for r in radii:
+            t = rho - r * (1 + m)
+            tw = t * iw
+            e = np.exp(-0.5 * tw * tw)
+            g += e
+            if want:
+                et = e * t
+                dg_drho -= et * iw2
+                dg_dm += et * iw2 * r
+                dg_dw += et * t * iw3
+        f[i] = b + a * g + gu * du + gv * dv
+        if want:
+            irho = 1.0 / rho
+            jac[i, 0] = a * dg_drho * (-du * irho) - gu
+            jac[i, 1] = a * dg_drho * (-dv * irho) - gv
+            jac[i, 2] = 1.0
+            jac[i, 3] = g
+            jac[i, 4] = a * dg_dm
+            jac[i, 5] = a * dg_dw
+            jac[i, 6] = du
+            jac[i, 7] = dv
+    return f
+
+
+@njit(cache=True, nogil=True)
+def _lm_rows(P, U, V, Y, counts, radii, n_iter, free, huber_k, sub):  # pragma: no cover - compiled
+    """Levenberg-Marquardt of every row of ``P`` (k, 8) in place; returns the robust residual scales."""
+    k = P.shape[0]
+    scales = np.ones(k)
+    for row in range(k):
+        n = counts[row]
+        u = U[row, :n]
+        v = V[row, :n]
+        y = Y[row, :n]
+        p = P[row].copy()
+        lam = 1e-3
+        scale = 1.0
+        jac = np.empty((n, 8))
+        jac_new = np.empty((n, 8))
+        absr = np.empty(n)
+        wts = np.empty(n)
+        f = _ring_model(p, u, v, radii, jac)        # the model and Jacobian at p; a kept step brings its own
+        for _ in range(n_iter):
+            for i in range(n):
+                absr[i] = abs(y[i] - f[i])
+            ns = (n + sub - 1) // sub
+            if ns > 0:
+                scale = max(np.partition(absr[::sub], ns // 2)[ns // 2] * 1.4826, 1e-9)
+            else:
+                scale = 1e-9
+            cost = 0.0
+            jtj = np.zeros((8, 8))
+            jtr = np.zeros(8)
+            jf = np.empty(8)
+            for i in range(n):
+                r = y[i] - f[i]
+                wt = min(1.0, huber_k * scale / max(absr[i], 1e-12))
+                wts[i] = wt
+                cost += wt * r * r
+                for a in range(8):
+                    jf[a] = jac[i, a] * free[a]
+                for a in range(8):
+                    ja = jf[a] * wt
+                    jtr[a] += ja * r
+                    for b in range(a, 8):
+                        jtj[a, b] += ja * jf[b]
+            for a in range(8):
+                for b in range(a):
+                    jtj[a, b] = jtj[b, a]
+            A = jtj.copy()
+            for a in range(8):
+                A[a, a] += lam * (jtj[a, a] + 1e-12) + (1.0 - free[a])
+            step = np.linalg.solve(A, jtr)
+            trial = p + step
+            trial[5] = min(max(trial[5], 0.02), 0.4)
+            f_new = _ring_model(trial, u, v, radii, jac_new)
+            c_new = 0.0
+            for i in range(n):
+                d = y[i] - f_new[i]
+                c_new += wts[i] * d * d
+            ok = c_new < cost and abs(trial[4]) < 0.25
+            for a in range(8):
+                ok = ok and np.isfinite(trial[a])
+            if ok:
+                p = trial
+                f = f_new
+                jac, jac_new = jac_new, jac
+                lam /= 3
+            else:
+                lam *= 4
+        P[row] = p
+        scales[row] = scale
+    return scales
 
 
 def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
@@ -312,9 +434,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
     free_b = np.ones(8)
     for s in range(0, len(uv0_mm), chunk):
         uv0 = np.asarray(uv0_mm[s:s + chunk], float)
-        u, v, y, valid = _gather(first, uv0, reach, stride1)
-        rho0 = np.hypot(u - uv0[:, :1], v - uv0[:, 1:])
-        mask, u, v, y = _compact(valid & (rho0 < reach) & (rho0 > inner), u, v, y)
+        mask, u, v, y = _window(first, uv0, reach, inner, stride1)
         b0 = _masked_median(y, mask)
         lo = -_masked_median(-np.where(mask, y, -np.inf), mask & (y < b0[:, None]))
         p = np.zeros((len(uv0), 8))
@@ -324,9 +444,7 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
         p[:, 5] = 0.15
         p, _ = _gauss_newton(p, u, v, y, mask, radii, 6, free_a)
         # re-centre the window on the new centre before the fine fit
-        u, v, y, valid = _gather(raster, p[:, :2], reach_b, stride)
-        rho1 = np.hypot(u - p[:, :1], v - p[:, 1:2])
-        mask, u, v, y = _compact(valid & (rho1 < reach_b) & (rho1 > inner_b), u, v, y)
+        mask, u, v, y = _window(raster, p[:, :2], reach_b, inner_b, stride)
         p[:, 5] = np.clip(p[:, 5], 0.03, 0.1)
         p, scale = _gauss_newton(p, u, v, y, mask, radii, 7, free_b)
         out["uv"].append(p[:, :2])

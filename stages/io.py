@@ -58,17 +58,20 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
         raise exc.with_path(path) from None
     except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError, struct.error) as exc:
         raise MarkcalError(f"cannot read {ext[1:].upper()} file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", path) from None
-    xyz = np.asarray(xyz, np.float64) * units_scale
+    xyz = np.asarray(xyz, np.float64)
+    if units_scale != 1.0:
+        xyz = xyz * units_scale
     inten = np.asarray(inten, np.float64).ravel()
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) != len(inten):
         raise MarkcalError("malformed cloud: need x, y, z and intensity per point", path)
     if len(xyz) == 0:
         raise MarkcalError("cloud has no points", path)
-    bad = ~np.all(np.isfinite(xyz), axis=1)
-    if bad.any():
+    lo, hi = float(xyz.min()), float(xyz.max())          # NaN propagates; one pass each instead of four
+    if not np.isfinite(lo + hi):
+        bad = ~np.all(np.isfinite(xyz), axis=1)
         raise MarkcalError(f"{int(bad.sum())} points have NaN or infinite coordinates", path)
-    far = np.abs(xyz).max(axis=1) > max_abs_for("xyz_mm")
-    if far.any():
+    if max(-lo, hi) > max_abs_for("xyz_mm"):
+        far = np.abs(xyz).max(axis=1) > max_abs_for("xyz_mm")
         raise MarkcalError(f"{int(far.sum())} points lie beyond ±10 m ({max_abs_for('xyz_mm'):g} mm; e.g. "
                            f"{np.abs(xyz[far][0]).max():g} mm): not a scan of a plate (wrong units?)", path)
     if not np.all(np.isfinite(inten)):
@@ -85,7 +88,54 @@ def _pick_intensity(names):
                        f"the scan flow needs backscatter intensity")
 
 
+_PLY_DTYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+               "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+               "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _read_ply_binary_vertices(path):
+    """Fast path: a binary PLY whose first element is ``vertex`` with scalar properties only, read in
+    one ``np.fromfile``; None for anything else (plyfile reads it)."""
+    with open(path, "rb") as fh:
+        head = fh.read(65536)
+    end = head.find(b"end_header")
+    nl = head.find(b"\n", end)
+    if end < 0 or nl < 0:
+        return None
+    lines = head[:end].decode("ascii", "replace").splitlines()
+    fmt = next((ln.split() for ln in lines if ln.startswith("format ")), [])
+    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(fmt[1] if len(fmt) > 1 else "")
+    elements = [ln.split() for ln in lines if ln.startswith("element ")]
+    if order is None or not elements or elements[0][1:2] != ["vertex"] or len(elements[0]) != 3:
+        return None
+    fields, seen = [], False
+    for ln in lines:
+        t = ln.split()
+        if t[:1] == ["element"]:
+            if seen:
+                break
+            seen = t[1] == "vertex"
+        elif t[:1] == ["property"] and seen:
+            if len(t) != 3 or t[1] not in _PLY_DTYPES or t[2] in dict(fields):
+                return None
+            fields.append((t[2], order + _PLY_DTYPES[t[1]]))
+    names = [f for f, _ in fields]
+    if not all(c in names for c in "xyz"):
+        return None
+    n = int(elements[0][2])
+    v = np.fromfile(path, dtype=np.dtype(fields), count=n, offset=nl + 1)
+    if len(v) != n:
+        raise MarkcalError(f"PLY is truncated: {len(v):,} of {n:,} vertices")
+    xyz = np.empty((n, 3))
+    for k, c in enumerate("xyz"):
+        xyz[:, k] = v[c]
+    return xyz, v[_pick_intensity(names)]
+
+
 def _read_ply(path):
+    fast = _read_ply_binary_vertices(path)
+    if fast is not None:
+        return fast
     from plyfile import PlyData, PlyParseError
     try:
         ply = PlyData.read(path)

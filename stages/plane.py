@@ -4,8 +4,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .errors import MarkcalError
+from .quantile import percentiles
 
 
 @dataclass(frozen=True)
@@ -63,10 +65,7 @@ def _ransac(xyz: np.ndarray, threshold_mm: float, rng: np.random.Generator, n_tr
     ok = norm > 1e-9
     normals = normals[ok] / norm[ok, None]
     d = np.einsum("ij,ij->i", normals, p0[ok])
-    counts = np.zeros(len(normals), int)
-    for s in range(0, len(normals), 32):
-        res = np.abs(xyz @ normals[s:s + 32].T - d[s:s + 32])
-        counts[s:s + 32] = (res < threshold_mm).sum(axis=0)
+    counts = _inlier_counts(np.ascontiguousarray(xyz, float), normals, d, float(threshold_mm))
     if len(counts) == 0:
         return None, None, 0
     best = int(np.argmax(counts))
@@ -99,10 +98,12 @@ def fit_plane(xyz_mm: np.ndarray, threshold_mm: float = 0.1, seed: int = 0,
     if len(xyz_mm) < 100:
         raise MarkcalError(f"only {len(xyz_mm)} points: too few to fit a plane")
     rng = np.random.default_rng(seed)
-    lo, hi = np.percentile(xyz_mm[:, :2], [5, 95], axis=0)
+    (lo_x, hi_x), (lo_y, hi_y) = percentiles(xyz_mm[:, 0], [5, 95]), percentiles(xyz_mm[:, 1], [5, 95])
+    lo, hi = np.array([lo_x, lo_y]), np.array([hi_x, hi_y])
     mid, half = (lo + hi) / 2, (hi - lo) / 2
-    central = np.all(np.abs(xyz_mm[:, :2] - mid) < 0.6 * half, axis=1)
-    pool = np.flatnonzero(central) if central.sum() > 1000 else np.arange(len(xyz_mm))
+    pool = _central(xyz_mm, mid, 0.6 * half)
+    if len(pool) <= 1000:
+        pool = np.arange(len(xyz_mm))
     sample = xyz_mm[pool[rng.choice(len(pool), size=min(sample_size, len(pool)), replace=False)]]
     n, d, count = _ransac(sample, threshold_mm, rng)
     if n is None or count < min_inlier_fraction * len(sample):
@@ -126,6 +127,32 @@ def fit_plane(xyz_mm: np.ndarray, threshold_mm: float = 0.1, seed: int = 0,
     n_out, e_u, e_v = _basis(n)
     return Plane(origin_mm=c, normal=n_out, e_u=e_u, e_v=e_v, rms_mm=sigma,
                  inlier_fraction=frac, threshold_mm=thr)
+
+
+@njit(cache=True, nogil=True)
+def _inlier_counts(xyz, normals, d, threshold):  # pragma: no cover - compiled
+    """Points within ``threshold`` of each plane n.p = d."""
+    counts = np.zeros(len(normals), np.int64)
+    for t in range(len(normals)):
+        nx, ny, nz, dt = normals[t, 0], normals[t, 1], normals[t, 2], d[t]
+        c = 0
+        for i in range(len(xyz)):
+            if abs(xyz[i, 0] * nx + xyz[i, 1] * ny + xyz[i, 2] * nz - dt) < threshold:
+                c += 1
+        counts[t] = c
+    return counts
+
+
+@njit(cache=True, nogil=True)
+def _central(xyz, mid, half):  # pragma: no cover - compiled
+    """Indices of the points with |x - mid_x| < half_x and |y - mid_y| < half_y."""
+    out = np.empty(len(xyz), np.int64)
+    m = 0
+    for i in range(len(xyz)):
+        if abs(xyz[i, 0] - mid[0]) < half[0] and abs(xyz[i, 1] - mid[1]) < half[1]:
+            out[m] = i
+            m += 1
+    return out[:m].copy()
 
 
 def to_plane(xyz_mm: np.ndarray, plane: Plane) -> np.ndarray:

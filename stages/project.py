@@ -4,9 +4,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 
 from .errors import MarkcalError
-from .plane import Plane, to_plane
+from .plane import Plane
+from .quantile import percentiles
 
 
 @dataclass(frozen=True)
@@ -67,33 +69,73 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     """
     if max_height_mm is None:
         max_height_mm = max(plane.threshold_mm, 0.05)
-    uvh = to_plane(xyz_mm, plane)
-    keep = np.abs(uvh[:, 2]) < max_height_mm
     inten = np.asarray(intensity, np.float64)
     top = inten.max()
-    if np.count_nonzero(inten == top) > 1e-4 * len(inten):
-        keep &= inten < top
-    uv = uvh[keep, :2]
-    inten = inten[keep]
-    if len(uv) < 100:
+    drop_top = np.count_nonzero(inten == top) > 1e-4 * len(inten)
+    xyz = np.asarray(xyz_mm, np.float64)
+    u, v, inten = _on_plane_uv(xyz, np.asarray(plane.origin_mm, float), plane.rotation, float(max_height_mm),
+                               inten, float(top), bool(drop_top))
+    if len(u) < 100:
         raise MarkcalError("fewer than 100 points lie on the plate plane")
-    lo, hi = np.percentile(uv, [0.01, 99.99], axis=0)
+    lo = np.array([percentiles(u, [0.01, 99.99]), percentiles(v, [0.01, 99.99])]).T
+    lo, hi = lo[0], lo[1]
     lo = np.floor(lo / pixel_mm) * pixel_mm
     ncol, nrow = (np.ceil((hi - lo) / pixel_mm).astype(int) + 1)
     if nrow * ncol > 200_000_000:
         raise MarkcalError(f"plate raster would be {nrow} x {ncol} cells: coordinates are not in mm")
-    col = np.floor((uv[:, 0] - lo[0]) / pixel_mm).astype(np.int64)
-    row = np.floor((uv[:, 1] - lo[1]) / pixel_mm).astype(np.int64)
-    inside = (col >= 0) & (col < ncol) & (row >= 0) & (row < nrow)
-    flat = row[inside] * ncol + col[inside]
-    size = nrow * ncol
-    count = np.bincount(flat, minlength=size)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean_i = np.bincount(flat, inten[inside], size) / count
-        mean_u = np.bincount(flat, uv[inside, 0], size) / count
-        mean_v = np.bincount(flat, uv[inside, 1], size) / count
-    shape = (nrow, ncol)
-    return Raster(intensity=mean_i.reshape(shape).astype(np.float32),
-                  u_mm=mean_u.reshape(shape), v_mm=mean_v.reshape(shape),
-                  valid=(count > 0).reshape(shape), u0_mm=float(lo[0]), v0_mm=float(lo[1]),
-                  pixel_mm=float(pixel_mm))
+    mean_i, mean_u, mean_v, count = _bin_means(u, v, inten, float(lo[0]), float(lo[1]), float(pixel_mm),
+                                               int(nrow), int(ncol))
+    return Raster(intensity=mean_i, u_mm=mean_u, v_mm=mean_v, valid=count > 0, u0_mm=float(lo[0]),
+                  v0_mm=float(lo[1]), pixel_mm=float(pixel_mm))
+
+
+@njit(cache=True, nogil=True)
+def _on_plane_uv(xyz, origin, rot, max_h, inten, top, drop_top):  # pragma: no cover - compiled
+    """In-plane (u, v) and intensity of the points within ``max_h`` of the plane (and below ``top`` when
+    ``drop_top``), in one pass and without an (n, 3) temporary."""
+    n = xyz.shape[0]
+    u = np.empty(n)
+    v = np.empty(n)
+    w = np.empty(n)
+    m = 0
+    for i in range(n):
+        dx = xyz[i, 0] - origin[0]
+        dy = xyz[i, 1] - origin[1]
+        dz = xyz[i, 2] - origin[2]
+        h = dx * rot[2, 0] + dy * rot[2, 1] + dz * rot[2, 2]
+        if abs(h) < max_h and not (drop_top and inten[i] >= top):
+            u[m] = dx * rot[0, 0] + dy * rot[0, 1] + dz * rot[0, 2]
+            v[m] = dx * rot[1, 0] + dy * rot[1, 1] + dz * rot[1, 2]
+            w[m] = inten[i]
+            m += 1
+    return u[:m], v[:m], w[:m]
+
+
+@njit(cache=True, nogil=True)
+def _bin_means(u, v, w, u0, v0, pixel, nrow, ncol):  # pragma: no cover - compiled
+    """Per-cell means of intensity (float32), u and v (NaN where empty) and the point count."""
+    count = np.zeros((nrow, ncol), np.int64)
+    si = np.zeros((nrow, ncol))
+    su = np.zeros((nrow, ncol))
+    sv = np.zeros((nrow, ncol))
+    for k in range(len(u)):
+        c = int(np.floor((u[k] - u0) / pixel))
+        r = int(np.floor((v[k] - v0) / pixel))
+        if 0 <= c < ncol and 0 <= r < nrow:
+            count[r, c] += 1
+            si[r, c] += w[k]
+            su[r, c] += u[k]
+            sv[r, c] += v[k]
+    mi = np.empty((nrow, ncol), np.float32)
+    for r in range(nrow):
+        for c in range(ncol):
+            n = count[r, c]
+            if n > 0:
+                mi[r, c] = si[r, c] / n
+                su[r, c] /= n
+                sv[r, c] /= n
+            else:
+                mi[r, c] = np.nan
+                su[r, c] = np.nan
+                sv[r, c] = np.nan
+    return mi, su, sv, count

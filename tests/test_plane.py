@@ -32,3 +32,29 @@ def test_plate_frame_of_many_points_matches_the_rotation():
     xyz = rng.uniform(-100, 100, (1000, 3))
     expect = np.array([[(p - plane.origin_mm) @ e for e in (plane.e_u, plane.e_v, plane.normal)] for p in xyz])
     np.testing.assert_allclose(to_plane(xyz, plane), expect, rtol=0, atol=1e-11)
+
+
+def test_projection_cells_hold_the_mean_plate_position_and_intensity_of_their_points():
+    # points on a tilted plane, a cell of 0.5 mm: each cell's u, v and intensity are the means of the
+    # points that fall in it (computed here with the plate frame of to_plane), points off the plane dropped
+    from markcal.stages.project import project
+    rng = np.random.default_rng(5)
+    plane = _plane([0.2, -0.1, 1.0], [3.0, -4.0, 10.0])
+    uv = rng.uniform(-20, 20, (20000, 2))
+    h = np.where(np.arange(20000) < 19000, rng.normal(0, 0.002, 20000), 1.0)      # 1000 points 1 mm above
+    xyz = plane.origin_mm + uv[:, :1] * plane.e_u + uv[:, 1:] * plane.e_v + h[:, None] * plane.normal
+    inten = rng.uniform(0, 100, 20000)
+    r = project(xyz, inten, plane, pixel_mm=0.5, max_height_mm=0.05)
+    on = np.abs(h) < 0.05
+    uvh = to_plane(xyz[on], plane)
+    col = np.floor((uvh[:, 0] - r.u0_mm) / 0.5).astype(int)
+    row = np.floor((uvh[:, 1] - r.v0_mm) / 0.5).astype(int)
+    inside = (col >= 0) & (col < r.valid.shape[1]) & (row >= 0) & (row < r.valid.shape[0])
+    flat = row[inside] * r.valid.shape[1] + col[inside]
+    n = np.bincount(flat, minlength=r.valid.size)
+    np.testing.assert_array_equal(r.valid.ravel(), n > 0)
+    full = n > 0
+    for got, vals in ((r.u_mm, uvh[inside, 0]), (r.v_mm, uvh[inside, 1]), (r.intensity, inten[on][inside])):
+        want = np.bincount(flat, vals, r.valid.size)[full] / n[full]
+        np.testing.assert_allclose(got.ravel()[full], want, rtol=0, atol=1e-4)    # intensity is float32
+    assert abs(r.u0_mm + 20) < 0.6 and abs(r.v0_mm + 20) < 0.6     # the raster starts at the points' edge
