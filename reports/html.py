@@ -237,8 +237,9 @@ def png_b64(fig) -> str:
     return base64.b64encode(png_bytes(fig)).decode("ascii")
 
 
-#: environment variable: "1" lets a report draw half of its figures in a forked process (off by default:
-#: its wall-time gain on an idle machine is not measured yet; it costs 0.15-0.4 s CPU more)
+#: environment variable: "0" keeps every figure in this process; by default a report draws half of its
+#: figures in a forked process when a core is free (the 5.4 M-point scan: 3.8 s instead of 4.2 s wall at
+#: load 1.9 on 2 cores; it costs 0.15-0.4 s CPU more, so it is skipped on a loaded machine)
 FORK_ENV = "MARKCAL_REPORT_FORK"
 #: seconds the parent waits for the child's figures before drawing them itself
 FORK_TIMEOUT_S = 120.0
@@ -251,7 +252,7 @@ def parts_in_two(here, there) -> tuple:
     The child only draws and sends its strings back through a pipe, then ends (``os._exit``); the parent
     always reaps it. A child that fails, sends nothing or takes longer than :data:`FORK_TIMEOUT_S`
     is killed and its parts are drawn here, so an error comes out here, as it would without the
-    child. Only with ``MARKCAL_REPORT_FORK=1``, and then no fork with one core, a loaded machine
+    child. Not with ``MARKCAL_REPORT_FORK=0``, one core, a loaded machine
     (1-minute load at or above the core count) or other Python threads running.
     """
     if not _fork_helps():
@@ -313,7 +314,7 @@ def parts_in_two(here, there) -> tuple:
 def _fork_helps() -> bool:
     import threading
     cores = os.cpu_count() or 1
-    return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "0") == "1"
+    return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "1") != "0"
             and threading.active_count() == 1 and os.getloadavg()[0] < cores)
 
 

@@ -216,9 +216,12 @@ def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, m
     assert scan_report_html(small_result) == alone and _all_reaped(forking)
 
 
-def test_no_fork_unless_asked(monkeypatch):
+def test_no_fork_when_turned_off_or_loaded(monkeypatch):
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.1, 0.1, 0.1))
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setenv(html.FORK_ENV, "0")
+    assert not html._fork_helps()                                   # turned off
     monkeypatch.delenv(html.FORK_ENV, raising=False)
-    assert not html._fork_helps()
-    monkeypatch.setenv(html.FORK_ENV, "1")
+    assert html._fork_helps()                                       # the default, with a free core
     monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
-    assert not html._fork_helps()                                   # asked, but no core is free
+    assert not html._fork_helps()                                   # no core is free
