@@ -59,6 +59,8 @@ def main(argv=None):
     ap.add_argument("--micro-seeds", type=int, default=10, help="single imprints in OM and SEM micrograph renders")
     ap.add_argument("--micro-first-seed", type=int, default=3000, help="first micrograph seed")
     ap.add_argument("--rounded-seeds", type=int, default=8, help="arrays with Gaussian tip rounding (depth)")
+    ap.add_argument("--rounded-first-seed", type=int, default=4000, help="first Gaussian-rounded seed")
+    ap.add_argument("--single-first-seed", type=int, default=2000, help="first single-imprint seed")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
     print("machine: 2 cores shared with other jobs; timings are noisy", file=sys.stderr)
@@ -182,12 +184,13 @@ def _rounded_sweep(a):
     from markcal.stages.image_io import Image
     from markcal.stages.indent_array import ArraySpec
     from markcal.pipeline.flows.indents import _measure
-    print(f"\nGaussian-rounded arrays, seeds 4000..{3999 + a.rounded_seeds}, 3 x 3 of 2 µm, 256 x 256 over 16 µm; "
+    s0 = a.rounded_first_seed
+    print(f"\nGaussian-rounded arrays, seeds {s0}..{s0 + a.rounded_seeds - 1}, 3 x 3 of 2 µm, 256 x 256 over 16 µm; "
           "goal: depth bias <= 1 nm, RMS <= 2 nm against the rounded surface's floor")
     print("seed rounding_um  depth_bias_nm  depth_rms_nm  apex_bias_nm  apex_rms_nm")
     allv = []
     for i in range(a.rounded_seeds):
-        seed = 4000 + i
+        seed = s0 + i
         r = render_rounded_afm(seed, RoundedOptions())
         img = Image(data=r.data.astype(float), pixel_um=r.pixel_um, kind="afm", source=f"rounded{seed}")
         res = _measure(img, ArraySpec(3, 3, 5.0, 2.0), IndentsOptions(), lambda m: None, time.perf_counter())
@@ -208,12 +211,13 @@ def _rounded_sweep(a):
 def _single_sweep(a, tmp):
     """Single imprints (fixtures/indent_single, seeds 2000+; odd seeds: a corner 3 px from the border)."""
     from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
-    print(f"\nsingle imprints, seeds 2000..{1999 + a.single_seeds}, 256 x 256, multi-channel IBW; goals: "
+    s0 = a.single_first_seed
+    print(f"\nsingle imprints, seeds {s0}..{s0 + a.single_seeds - 1}, 256 x 256, multi-channel IBW; goals: "
           "d 0.5 % or 1 px, depth 1 %, area 1 %, corners 1.5 px, <= 0.3 s")
     print("seed fill margin_px  d_err_%  d_err_px  depth_err_%  area_err_%  corner_max_px  cut  wall_s")
     rows = []
     for i in range(a.single_seeds):
-        seed = 2000 + i
+        seed = s0 + i
         r = render_single(seed, SingleOptions(corner_margin_px=3.0 if i % 2 else None))
         t = r.truth["imprints"][0]
         path = os.path.join(tmp, "single.ibw")

@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import expit
 
-from .indent_geometry import Imprint, circle_fit, diagonals
+from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
 
@@ -244,42 +244,9 @@ def _seg_dist(X, Y, a, b):
 
 
 def _lm(fun, p, step, n_iter, f_scale=3.0):
-    """Levenberg-Marquardt with a soft-L1 loss (reweighted), forward-difference Jacobian.
-
-    A dense 10 x 10 system per iteration: cheaper than a general solver's SVD or LSMR on
-    tens of thousands of residuals.
-    """
-    def cost(r):
-        return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2) - 1))
-
-    r = fun(p)
-    c = cost(r)
-    lam = 1e-2
-    for _ in range(n_iter):
-        jm = np.empty((len(r), len(p)))
-        for j in range(len(p)):
-            q = p.copy()
-            q[j] += step
-            jm[:, j] = (fun(q) - r) / step
-        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
-        jw = jm * w[:, None]
-        a, g = jw.T @ jm, jw.T @ r
-        dia = np.diag(np.diag(a)) + 1e-12 * np.eye(len(p))
-        for _try in range(6):
-            dp = -np.linalg.solve(a + lam * dia, g)
-            rn = fun(p + dp)
-            cn = cost(rn)
-            if cn < c:
-                break
-            lam *= 4.0
-        else:
-            break
-        p, r, lam = p + dp, rn, max(lam / 3.0, 1e-6)
-        done = c - cn < 1e-6 * c or np.max(np.abs(dp)) < 0.01 * step * 10
-        c = cn
-        if done:
-            break
-    return p
+    """Levenberg-Marquardt with a soft-L1 loss and a forward-difference Jacobian
+    (:func:`indent_geometry.lm_soft_l1`): a dense 10 x 10 system per iteration."""
+    return lm_soft_l1(fun, p, n_iter, f_scale=f_scale, step=step)
 
 
 def _soft_cost(r, f_scale=3.0):
