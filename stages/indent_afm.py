@@ -299,8 +299,7 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         ccx, ccy, crad = circle_fit(corners)
         if not np.isfinite(crad) or crad <= 0:
             return None
-        fx, fy, fm = _floor(coef, tau, (ccx, ccy), qk)
-        result = dict(corners=corners, ccx=ccx, ccy=ccy, crad=crad, depth=-fm, tau=tau, res=res, zr=zr,
+        result = dict(corners=corners, ccx=ccx, ccy=ccy, crad=crad, coef=coef, q=qk, tau=tau, res=res, zr=zr,
                       x=x, y=y, fit_px=fit_px, origin=(cx * pixel_um, cy * pixel_um))
         # next round: window centred on the circle, radius from the corners; shifting the
         # origin changes the plane offsets: c' = c + a dx + b dy
@@ -313,6 +312,8 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         cx, cy = new_cx, new_cy
         if done:
             break
+    # the model's floor, of the last fit only
+    result["depth"] = -_floor(result["coef"], result["tau"], (result["ccx"], result["ccy"]), result["q"])[2]
     return _imprint_from_fit(result, pixel_um)
 
 
