@@ -254,6 +254,11 @@ def _soft_cost(r, f_scale=3.0):
     return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2)))
 
 
+def _mean_diagonal(c):
+    """Mean of the two diagonals (corner 0-2, 1-3) of a quadrilateral (same units as ``c``)."""
+    return 0.5 * (np.hypot(*(c[0] - c[2])) + np.hypot(*(c[1] - c[3])))
+
+
 def _refine(img, corners, apex, d_px):
     """Coarse-to-fine quadrilateral fit; returns corners (4, 2), apex (2,), model of the last level."""
     p = np.concatenate([apex, corners.ravel()])
@@ -264,10 +269,13 @@ def _refine(img, corners, apex, d_px):
     while f >= 1:
         levels.append(f)
         f //= 2
-    if d_px > 160:                       # two pixels of a large imprint: the ridge ends place the corners
-        levels = [v for v in levels if v >= 2]
     model = None
     for i, f in enumerate(levels):
+        if f == 1 and i > 0 and _mean_diagonal(p[2:].reshape(4, 2)) > 160:
+            # two pixels of a large imprint: the ridge ends place the corners. Judged on the fitted
+            # size, not the coarse outline's (a wide halo inflates that: the full-resolution level
+            # was skipped on a 119 px OM imprint, +3 px)
+            break
         band = None if i == 0 else max(6.0 * f, 0.06 * d_px)
         model = _QuadModel(img, f, p[2:].reshape(4, 2), p[:2], band)
         if len(model.z) < 60:
