@@ -75,6 +75,19 @@ def test_small_om_imprint_not_short(seed):
     assert np.all(_corner_errors_px(imps[0].corners_um, t["corners_um"], px) <= 0.6)
 
 
+def test_halo_does_not_skip_full_resolution_level():
+    """OM seed 3119 (119 px, wide halo): the coarse outline held the halo (> 160 px), so the fit
+    stopped at the 2x level, +3.0 px; the level is now chosen on the fitted size: +0.42 px, corners
+    0.32 px (tolerances about 2x those)."""
+    r = render_micrograph(3119, MicrographOptions(style="om"))
+    t = r.truth["imprints"][0]
+    px = r.pixel_um
+    imps, _bar = measure_micrograph(r.data, px)
+    assert len(imps) == 1
+    assert abs(imps[0].d_um - t["d_um"]) <= 0.8 * px
+    assert np.all(_corner_errors_px(imps[0].corners_um, t["corners_um"], px) <= 0.65)
+
+
 def test_info_bar_found_and_left_out():
     r = render_micrograph(5, MicrographOptions(style="sem", bar_rows=48))
     assert info_bar_rows(r.data.astype(float)) == 48 + 2          # the bar and two rows of margin
