@@ -100,4 +100,11 @@ MUTANTS_INDENTS = [
         "new": "        w = np.ones_like(r)\n",
         "tests": ["tests/test_indents.py", _MICRO],
     },
+    {   # the extended OM model (edge and ridge lines, one-sided shading) never switched on
+        "name": "om-extended-never",
+        "file": "stages/indent_om.py",
+        "old": "    if misfit > EXTENDED_MISFIT:\n",
+        "new": "    if misfit > 1e9 * EXTENDED_MISFIT:\n",
+        "tests": ["tests/test_indents.py::test_om_array_with_lines_and_one_sided_shading"],
+    },
 ]

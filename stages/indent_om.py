@@ -459,7 +459,10 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
     shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
     out-of-focus dust) are returned as None. With fewer than three candidates every dot is
-    fitted on its own (:func:`measure_om`).
+    fitted on its own (:func:`measure_om`). When the plain model leaves structure inside the dots
+    (median in-dot residual above ``EXTENDED_MISFIT`` noise levels: thin dark edge and ridge lines,
+    facets shaded from light on one side), everything is fitted again with those terms added to the
+    shared parameters; a dot that pass rejects keeps its plain fit.
 
     Parameters
     ----------
@@ -477,8 +480,10 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     if misfit > EXTENDED_MISFIT:
         # the plain model leaves structure in the dots (edge and ridge lines, facets shaded from
         # one side): fit again with those terms, shared by the dots
-        out, _m = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all,
+        ext, _m = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all,
                                  len(_OM_SHARED))
+        # a dot the extended fit rejects (e.g. at a vignetted corner) keeps its plain fit
+        out = [e if e is not None else p for e, p in zip(ext, out)]
     return out
 
 
