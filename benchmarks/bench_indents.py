@@ -2,7 +2,7 @@
 the real 1.7 Mpx SEM image; wall and CPU seconds, load average) and accuracy on unseen renders.
 
 Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4] [--micro-seeds 10]
-       [--rounded-seeds 8] [--single-seeds 10]
+       [--rounded-seeds 8] [--single-seeds 10] [--om-hard-seeds 10] [--*-first-seed N]
 
 Speed: read the float32 TIFF -> level -> detect -> measure -> index and register,
 in memory (``measure_file``), median of ``--runs``. Accuracy: seeds 1000+ (never
@@ -59,6 +59,11 @@ def main(argv=None):
     ap.add_argument("--micro-seeds", type=int, default=10, help="single imprints in OM and SEM micrograph renders")
     ap.add_argument("--micro-first-seed", type=int, default=3000, help="first micrograph seed")
     ap.add_argument("--rounded-seeds", type=int, default=8, help="arrays with Gaussian tip rounding (depth)")
+    ap.add_argument("--rounded-first-seed", type=int, default=4000, help="first Gaussian-rounded seed")
+    ap.add_argument("--single-first-seed", type=int, default=2000, help="first single-imprint seed")
+    ap.add_argument("--om-hard-seeds", type=int, default=0,
+                    help="OM arrays from the micrograph renderer (one-sided shading, lines, halo, vignetting)")
+    ap.add_argument("--om-hard-first-seed", type=int, default=5000, help="first hard OM array seed")
     a = ap.parse_args(argv)
     tmp = tempfile.mkdtemp(prefix="bench_indents_")
     print("machine: 2 cores shared with other jobs; timings are noisy", file=sys.stderr)
@@ -77,6 +82,8 @@ def main(argv=None):
         _afm_sweep(a, tmp)
     if a.om_seeds:
         _om_sweep(a, tmp)
+    if a.om_hard_seeds:
+        _om_hard_sweep(a, tmp)
 
 
 def _time_file(path, spec, runs):
@@ -182,12 +189,13 @@ def _rounded_sweep(a):
     from markcal.stages.image_io import Image
     from markcal.stages.indent_array import ArraySpec
     from markcal.pipeline.flows.indents import _measure
-    print(f"\nGaussian-rounded arrays, seeds 4000..{3999 + a.rounded_seeds}, 3 x 3 of 2 µm, 256 x 256 over 16 µm; "
+    s0 = a.rounded_first_seed
+    print(f"\nGaussian-rounded arrays, seeds {s0}..{s0 + a.rounded_seeds - 1}, 3 x 3 of 2 µm, 256 x 256 over 16 µm; "
           "goal: depth bias <= 1 nm, RMS <= 2 nm against the rounded surface's floor")
     print("seed rounding_um  depth_bias_nm  depth_rms_nm  apex_bias_nm  apex_rms_nm")
     allv = []
     for i in range(a.rounded_seeds):
-        seed = 4000 + i
+        seed = s0 + i
         r = render_rounded_afm(seed, RoundedOptions())
         img = Image(data=r.data.astype(float), pixel_um=r.pixel_um, kind="afm", source=f"rounded{seed}")
         res = _measure(img, ArraySpec(3, 3, 5.0, 2.0), IndentsOptions(), lambda m: None, time.perf_counter())
@@ -208,12 +216,13 @@ def _rounded_sweep(a):
 def _single_sweep(a, tmp):
     """Single imprints (fixtures/indent_single, seeds 2000+; odd seeds: a corner 3 px from the border)."""
     from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
-    print(f"\nsingle imprints, seeds 2000..{1999 + a.single_seeds}, 256 x 256, multi-channel IBW; goals: "
+    s0 = a.single_first_seed
+    print(f"\nsingle imprints, seeds {s0}..{s0 + a.single_seeds - 1}, 256 x 256, multi-channel IBW; goals: "
           "d 0.5 % or 1 px, depth 1 %, area 1 %, corners 1.5 px, <= 0.3 s")
     print("seed fill margin_px  d_err_%  d_err_px  depth_err_%  area_err_%  corner_max_px  cut  wall_s")
     rows = []
     for i in range(a.single_seeds):
-        seed = 2000 + i
+        seed = s0 + i
         r = render_single(seed, SingleOptions(corner_margin_px=3.0 if i % 2 else None))
         t = r.truth["imprints"][0]
         path = os.path.join(tmp, "single.ibw")
@@ -286,6 +295,48 @@ def _om_sweep(a, tmp):
           f"{1000 * np.abs(e[:, 1]).max():.0f} nm (goal 100), {np.mean(np.abs(e[:, 1]) <= 0.1) * 100:.0f} % within; "
           f"diameter RMS {1000 * np.sqrt(np.mean(e[:, 1] ** 2)):.1f} nm; run_indents per image: median "
           f"{np.median(times):.2f} s, max {max(times):.2f} s (goal <= 2 s)")
+
+
+def _om_hard_sweep(a, tmp):
+    """OM arrays drawn by the micrograph renderer (``grid``): 5 x 5 at 8 µm of 1, 2 or 3 µm imprints,
+    480 x 480 at 0.1 µm; facet shading from light on one side, dark ridge and edge lines, pile-up
+    halo, vignetting, texture, noise. Goals: every mean diagonal within ±50 nm, centre RMS <= 10 nm,
+    image-wide centre bias <= 10 nm."""
+    from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
+    s0 = a.om_hard_first_seed
+    print(f"\nhard OM arrays (micrograph renderer), seeds {s0}..{s0 + a.om_hard_seeds - 1}, 5 x 5 at 8 µm, "
+          "480 x 480 at 0.1 µm; goals: d within ±50 nm, centre RMS <= 10 nm, image bias <= 10 nm")
+    print("seed nominal  n missed  centre_rms_nm  bias_x_nm  bias_y_nm  d_err_mean_nm  d_err_max_nm  cpu_s")
+    allv, worst_bias = [], 0.0
+    for i in range(a.om_hard_seeds):
+        seed = s0 + i
+        nominal = [1.0, 2.0, 3.0][i % 3]
+        r = render_micrograph(seed, MicrographOptions(rows=480, cols=480, grid=(5, 5, 8.0), d_um=nominal))
+        path = os.path.join(tmp, "om_hard.tif")
+        with open(path, "wb") as fh:
+            fh.write(tiff_bytes(r.data, r.pixel_um))
+        spec = os.path.join(tmp, "om_hard.toml")
+        with open(spec, "w") as fh:
+            fh.write(array_toml(5, 5, 8.0, nominal))
+        c0 = time.process_time()
+        f = measure_file(path, read_array_spec(spec), IndentsOptions(kind="om"))
+        cpu = time.process_time() - c0
+        t = f.table
+        e = []
+        for ti in r.truth["imprints"]:
+            k = int(np.argmin(np.hypot(t["x_um"] - ti["x_um"], t["y_um"] - ti["y_um"])))
+            e.append((t["x_um"][k] - ti["x_um"], t["y_um"][k] - ti["y_um"], t["diameter_um"][k] - ti["d_um"]))
+        e = 1000 * np.array(e)
+        allv.append(e)
+        bias = e[:, :2].mean(axis=0)
+        worst_bias = max(worst_bias, float(np.hypot(*bias)))
+        print(f"{seed} {nominal:5.1f} {len(t['x_um']):3d} {25 - len(t['x_um']):4d} "
+              f"{np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)):12.1f} {bias[0]:+10.1f} {bias[1]:+10.1f} "
+              f"{e[:, 2].mean():+13.1f} {np.abs(e[:, 2]).max():13.1f} {cpu:6.2f}", flush=True)
+    e = np.vstack(allv)
+    print(f"all {len(e)}: centre RMS {np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)):.1f} nm (goal 10), worst image "
+          f"bias {worst_bias:.1f} nm (goal 10), d error mean {e[:, 2].mean():+.1f} nm, max |{np.abs(e[:, 2]).max():.1f}| nm, "
+          f"{100 * np.mean(np.abs(e[:, 2]) <= 50):.0f} % within ±50 nm (goal 100 %)")
 
 
 if __name__ == "__main__":

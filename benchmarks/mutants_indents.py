@@ -79,5 +79,32 @@ MUTANTS_INDENTS = [
         "new": "vol = float(zr[outer].sum() * pixel_um * pixel_um)",
         "tests": [_SINGLE + "::test_single_imprint_against_truth"],
     },
+    {   # the full-resolution level skipped on the coarse outline's size (a halo inflates it)
+        "name": "micrograph-levels-on-coarse-size",
+        "file": "stages/indent_micrograph.py",
+        "old": "if f == 1 and i > 0 and _mean_diagonal(p[2:].reshape(4, 2)) > 160:",
+        "new": "if f == 1 and i > 0 and d_px > 160:",
+        "tests": ["tests/test_indent_micrograph.py::test_halo_does_not_skip_full_resolution_level"],
+    },
+    {   # pit candidates at the deepest point within the component's bounding box, not in the map
+        "name": "afm-pit-position-in-box",
+        "file": "stages/indent_afm.py",
+        "old": "out.append((float(pos_k[0] + sl[0].start), float(pos_k[1] + sl[1].start), float(r_px)))",
+        "new": "out.append((float(pos_k[0]), float(pos_k[1]), float(r_px)))",
+        "tests": ["tests/test_indents.py", _SINGLE],
+    },
+    {   # the facet fit's robust loss dropped (plain least squares): dust and scars pull the facets
+        "name": "lm-soft-l1-unweighted",
+        "file": "stages/indent_geometry.py",
+        "old": "        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)\n",
+        "new": "        w = np.ones_like(r)\n",
+        "tests": ["tests/test_indents.py", _MICRO],
+    },
+    {   # the extended OM model (edge and ridge lines, one-sided shading) never switched on
+        "name": "om-extended-never",
+        "file": "stages/indent_om.py",
+        "old": "    if misfit > EXTENDED_MISFIT:\n",
+        "new": "    if misfit > 1e9 * EXTENDED_MISFIT:\n",
+        "tests": ["tests/test_indents.py::test_om_array_with_lines_and_one_sided_shading"],
+    },
 ]
-

@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "robust_plane", "wrap45"]
+__all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "lm_soft_l1", "plane_moments",
+           "planes_from_moments", "robust_plane", "wrap45"]
 
 #: per-imprint fields (``Imprint`` attributes that go into indents.csv)
 IMPRINT_FIELDS = ("x_um", "y_um", "diameter_um", "diag1_um", "diag2_um", "d_um", "area_um2", "depth_nm",
@@ -104,19 +105,102 @@ def diagonals(corners):
     return lb, la, wrap45(ab)
 
 
-def robust_plane(x, y, z, n_iter=4):
-    a = np.column_stack([x, y, np.ones_like(x)])
-    keep = np.ones(len(z), bool)
+def plane_moments(x, y, z) -> np.ndarray:
+    """Per-point products (n, 9) whose sums over any subset give that subset's plane fit
+    (:func:`planes_from_moments`)."""
+    return np.column_stack([x * x, x * y, x, y * y, y, np.ones_like(x), x * z, y * z, z])
+
+
+def planes_from_moments(sums: np.ndarray) -> np.ndarray:
+    """Least-squares planes z = a x + b y + c from summed :func:`plane_moments` (..., 9) -> (..., 3)."""
+    sxx, sxy, sx, syy, sy, n, sxz, syz, sz = np.moveaxis(np.asarray(sums, float), -1, 0)
+    m = np.stack([np.stack([sxx, sxy, sx], -1), np.stack([sxy, syy, sy], -1), np.stack([sx, sy, n], -1)], -2)
+    return np.linalg.solve(m + 1e-12 * np.eye(3), np.stack([sxz, syz, sz], -1)[..., None])[..., 0]
+
+
+def robust_plane(x, y, z, n_iter=4, scale_samples=2000, tol=0.001):
+    """Plane z = a x + b y + c by least squares, refitted up to ``n_iter`` times without points
+    beyond 3.5 robust sigma (MAD, from about ``scale_samples`` evenly spaced kept points), until
+    no more than ``tol`` of the points change sides.
+
+    Returns
+    -------
+    ndarray (3,)
+        a, b, c.
+    """
+    x, y, z = (np.asarray(v, float) for v in (x, y, z))
+    mom = plane_moments(x, y, z)           # the normal equations of a kept subset: one product
+    w = np.ones(len(z))
     coef = np.zeros(3)
     for _ in range(n_iter):
-        ak = a[keep]
-        coef = np.linalg.solve(ak.T @ ak + 1e-12 * np.eye(3), ak.T @ z[keep])
+        sums = w @ mom
+        coef = planes_from_moments(sums)
         if n_iter == 1:
             break
-        r = z - a @ coef
-        s = 1.4826 * np.median(np.abs(r[keep] - np.median(r[keep]))) + 1e-9
+        r = z - (coef[0] * x + coef[1] * y + coef[2])
+        keep = w > 0
+        rk = r[keep][::max(1, int(sums[5]) // scale_samples)]
+        s = 1.4826 * np.median(np.abs(rk - np.median(rk))) + 1e-9
         new = np.abs(r) < 3.5 * s
-        if new.sum() < 10 or np.array_equal(new, keep):
+        # converged: the kept set (nearly) unchanged; a few points at the threshold move nothing
+        if new.sum() < 10 or np.count_nonzero(new != keep) <= tol * len(z):
             break
-        keep = new
+        w = new.astype(float)
     return coef
+
+
+def lm_soft_l1(fun, p, n_iter, f_scale=3.0, step=None, jac=None, ftol=1e-6, xtol=None, lo=None, hi=None):
+    """Levenberg-Marquardt with a soft-L1 loss (reweighted residuals), Marquardt scaling.
+
+    A dense normal-equation solve per iteration: cheaper than a general solver's SVD or
+    LSMR when there are few parameters. The Jacobian is ``jac(p)`` when given, else forward
+    differences of ``step``. ``lo``/``hi`` clip the parameters after each step. Stops when
+    the cost falls by less than ``ftol`` of itself or no step is larger than ``xtol``
+    (default ``0.1 step``).
+
+    Returns
+    -------
+    ndarray
+        The parameters.
+    """
+    def cost(r):
+        return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2) - 1))
+
+    def clip(q):
+        return q if lo is None else np.clip(q, lo, hi)
+
+    xtol = (0.1 * step if step is not None else 0.0) if xtol is None else xtol
+    p = clip(np.asarray(p, float))
+    r = fun(p)
+    c = cost(r)
+    lam = 1e-2
+    for _ in range(n_iter):
+        if jac is not None:
+            jm = jac(p)
+        else:
+            jm = np.empty((len(r), len(p)))
+            for j in range(len(p)):
+                q = p.copy()
+                q[j] += step
+                jm[:, j] = (fun(q) - r) / step
+        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
+        jw = jm * w[:, None]
+        a, g = jw.T @ jm, jw.T @ r
+        dia = np.diag(np.diag(a)) + 1e-12 * np.eye(len(p))
+        for _try in range(6):
+            dp = -np.linalg.solve(a + lam * dia, g)
+            if lo is not None:
+                dp = clip(p + dp) - p
+            rn = fun(p + dp)
+            cn = cost(rn)
+            if cn < c:
+                break
+            lam *= 4.0
+        else:
+            break
+        p, r, lam = p + dp, rn, max(lam / 3.0, 1e-6)
+        done = c - cn < ftol * c or np.max(np.abs(dp)) < xtol
+        c = cn
+        if done:
+            break
+    return p

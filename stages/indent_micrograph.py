@@ -24,7 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import expit
 
-from .indent_geometry import Imprint, circle_fit, diagonals
+from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
 
@@ -244,47 +244,19 @@ def _seg_dist(X, Y, a, b):
 
 
 def _lm(fun, p, step, n_iter, f_scale=3.0):
-    """Levenberg-Marquardt with a soft-L1 loss (reweighted), forward-difference Jacobian.
-
-    A dense 10 x 10 system per iteration: cheaper than a general solver's SVD or LSMR on
-    tens of thousands of residuals.
-    """
-    def cost(r):
-        return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2) - 1))
-
-    r = fun(p)
-    c = cost(r)
-    lam = 1e-2
-    for _ in range(n_iter):
-        jm = np.empty((len(r), len(p)))
-        for j in range(len(p)):
-            q = p.copy()
-            q[j] += step
-            jm[:, j] = (fun(q) - r) / step
-        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
-        jw = jm * w[:, None]
-        a, g = jw.T @ jm, jw.T @ r
-        dia = np.diag(np.diag(a)) + 1e-12 * np.eye(len(p))
-        for _try in range(6):
-            dp = -np.linalg.solve(a + lam * dia, g)
-            rn = fun(p + dp)
-            cn = cost(rn)
-            if cn < c:
-                break
-            lam *= 4.0
-        else:
-            break
-        p, r, lam = p + dp, rn, max(lam / 3.0, 1e-6)
-        done = c - cn < 1e-6 * c or np.max(np.abs(dp)) < 0.01 * step * 10
-        c = cn
-        if done:
-            break
-    return p
+    """Levenberg-Marquardt with a soft-L1 loss and a forward-difference Jacobian
+    (:func:`indent_geometry.lm_soft_l1`): a dense 10 x 10 system per iteration."""
+    return lm_soft_l1(fun, p, n_iter, f_scale=f_scale, step=step)
 
 
 def _soft_cost(r, f_scale=3.0):
     """Soft-L1 cost of residuals (noise units), as :func:`_lm` minimises it (up to a constant)."""
     return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2)))
+
+
+def _mean_diagonal(c):
+    """Mean of the two diagonals (corner 0-2, 1-3) of a quadrilateral (same units as ``c``)."""
+    return 0.5 * (np.hypot(*(c[0] - c[2])) + np.hypot(*(c[1] - c[3])))
 
 
 def _refine(img, corners, apex, d_px):
@@ -297,10 +269,13 @@ def _refine(img, corners, apex, d_px):
     while f >= 1:
         levels.append(f)
         f //= 2
-    if d_px > 160:                       # two pixels of a large imprint: the ridge ends place the corners
-        levels = [v for v in levels if v >= 2]
     model = None
     for i, f in enumerate(levels):
+        if f == 1 and i > 0 and _mean_diagonal(p[2:].reshape(4, 2)) > 160:
+            # two pixels of a large imprint: the ridge ends place the corners. Judged on the fitted
+            # size, not the coarse outline's (a wide halo inflates that: the full-resolution level
+            # was skipped on a 119 px OM imprint, +3 px)
+            break
         band = None if i == 0 else max(6.0 * f, 0.06 * d_px)
         model = _QuadModel(img, f, p[2:].reshape(4, 2), p[:2], band)
         if len(model.z) < 60:

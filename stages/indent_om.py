@@ -108,12 +108,22 @@ def _airy_kernel(psf_um, sub_um):
 #: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
 #: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
 #: material): interior darkness at the edge and its increase to the floor, rim height and width
-#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm).
+#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm); then the darkness of thin
+#: lines on the edges, the facets' shading from light on one side (three contrasts between the
+#: quadrants of the dot's own frame: +-u, +-v, their product) and the darkness of the ridge lines.
 _OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
-_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf")
-_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04])
-_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6])
-_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5])
+_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "edge_line", "shade_u", "shade_v", "shade_uv", "ridge_line")
+_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0, 0.0])
+_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 1.5, 1.0, 1.0, 1.0, 1.5])
+_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
+#: the plain model uses the first five shared parameters; the extended one (lines, one-sided
+#: shading) all of them
+_NS_PLAIN = 5
+
+
+def _dev_shared(ns):
+    """Shared parameters that change the fine-grid reflectance: all but the PSF (index 4)."""
+    return [j for j in range(ns) if j != 4]
 _OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
 
 
@@ -178,10 +188,19 @@ class _OmPatch:
         ct, st = np.cos(th), np.sin(th)
         ex, ey = self.xf - cx, self.yf - cy
         half = max(d / 2, 1e-3)
-        rho = (np.abs(ex * ct + ey * st) + np.abs(ey * ct - ex * st)) / half
+        u, v = ex * ct + ey * st, ey * ct - ex * st
+        rho = (np.abs(u) + np.abs(v)) / half
         inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
         t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
-        return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+        out = rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+        if len(s) > _NS_PLAIN:
+            line_w = max(0.6 * self.pixel_um, self.sub)                 # thin lines (the PSF widens them)
+            su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
+            edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
+            ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
+            out = out - s[5] * np.exp(-0.5 * (edge / line_w) ** 2) \
+                - inside * (s[6] * su + s[7] * sv + s[8] * su * sv + s[9] * np.exp(-0.5 * (ridge / line_w) ** 2))
+        return out
 
     def blur(self, dev, psf):
         """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
@@ -199,14 +218,14 @@ class _OmPatch:
         return (1.0 + self.blur(self.dev(g, s), s[4])) * self.lin(g)
 
     def jac(self, g, s, shared=True):
-        """Model and forward-difference Jacobian (pixels x (7 own [+ 5 shared]) columns)."""
+        """Model and forward-difference Jacobian (pixels x (7 own [+ shared]) columns)."""
         devs = [self.dev(g, s)]
         for j in range(4):
             gj = g.copy()
             gj[j] += _OM_OWN_STEP[j]
             devs.append(self.dev(gj, s))
         if shared:
-            for j in range(4):
+            for j in _dev_shared(len(s)):
                 sj = s.copy()
                 sj[j] += _OM_SHARED_STEP[j]
                 devs.append(self.dev(g, sj))
@@ -217,8 +236,9 @@ class _OmPatch:
         cols = [(pix[1 + j] - pix[0]) * lin / _OM_OWN_STEP[j] for j in range(4)]
         cols += [base, base * self.dx, base * self.dy]
         if shared:
-            cols += [(pix[5 + j] - pix[0]) * lin / _OM_SHARED_STEP[j] for j in range(4)]
-            cols.append((self.blur(devs[0], s[4] + _OM_SHARED_STEP[4]) - pix[0]) * lin / _OM_SHARED_STEP[4])
+            sh = {j: (pix[5 + n] - pix[0]) * lin / _OM_SHARED_STEP[j] for n, j in enumerate(_dev_shared(len(s)))}
+            sh[4] = (self.blur(devs[0], s[4] + _OM_SHARED_STEP[4]) - pix[0]) * lin / _OM_SHARED_STEP[4]
+            cols += [sh[j] for j in range(len(s))]
         return m.ravel(), np.stack([c.ravel() for c in cols], axis=1)
 
     def own_bounds(self, d0):
@@ -241,14 +261,15 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
     """Fit the shared parameters and every patch's own parameters jointly (robust loss).
 
     The Jacobian is built block by block: a patch depends only on its own seven parameters
-    and the five shared ones.
+    and the shared ones.
     """
     k = len(patches)
+    ns = len(s0)
     sizes = [p.patch.size for p in patches]
     offs = np.concatenate([[0], np.cumsum(sizes)])
     target = np.concatenate([p.patch.ravel() for p in patches])
-    lo = [_OM_SHARED_LO]
-    hi = [_OM_SHARED_HI]
+    lo = [_OM_SHARED_LO[:ns]]
+    hi = [_OM_SHARED_HI[:ns]]
     for p, d in zip(patches, d0):
         a, b = p.own_bounds(d)
         lo.append(a)
@@ -257,7 +278,7 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
     x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
 
     def split(x):
-        return x[:5], x[5:].reshape(k, 7)
+        return x[:ns], x[ns:].reshape(k, 7)
 
     def fun(x):
         s, g = split(x)
@@ -269,11 +290,11 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
         for i, p in enumerate(patches):
             _m, jp = p.jac(g[i], s)
             rows = slice(offs[i], offs[i + 1])
-            jm[rows, 5 + 7 * i:12 + 7 * i] = jp[:, :7]
-            jm[rows, :5] = jp[:, 7:]
+            jm[rows, ns + 7 * i:ns + 7 + 7 * i] = jp[:, :7]
+            jm[rows, :ns] = jp[:, 7:]
         return jm
 
-    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
+    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (ns - 5), np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
     r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
                       x_scale=scale, max_nfev=max_nfev)
     s, g = split(r.x)
@@ -285,20 +306,22 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
     """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
 
     The normal equations have a block-arrow structure (each patch couples its seven own
-    parameters only with the five shared ones), solved through the Schur complement of the
+    parameters only with the shared ones), solved through the Schur complement of the
     shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
     iteratively reweighted least squares; bounds by clipping.
 
     Returns
     -------
-    s : ndarray (5,), g : ndarray (k, 7), res : list of residual arrays
+    s : ndarray (shared,), g : ndarray (k, 7), res : list of residual arrays
     """
     f = max(3 * noise_rel, 0.005)
     bounds = [p.own_bounds(d) for p, d in zip(patches, d0)]
     lo_g = np.array([b[0] for b in bounds]) + 1e-9
     hi_g = np.array([b[1] for b in bounds]) - 1e-9
     g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
-    s = np.clip(np.array(s, dtype=float), _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+    ns = len(s)
+    s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
+    s = np.clip(np.array(s, dtype=float), s_lo, s_hi)
     targets = [p.patch.ravel() for p in patches]
 
     def cost_of(res):
@@ -308,8 +331,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
     res = None
     for _it in range(n_iter):
         U, W, ga = [], [], []
-        V = np.zeros((5, 5))
-        gb = np.zeros(5)
+        V = np.zeros((ns, ns))
+        gb = np.zeros(ns)
         res = []
         for i, p in enumerate(patches):
             m, jm = p.jac(g[i], s)
@@ -327,14 +350,14 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
         improved = False
         for _try in range(5):
             uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
-            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(5)
+            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(ns)
             rhs = gb.copy()
             for ui, wi, gi in zip(uinv, W, ga):
                 S -= wi.T @ ui @ wi
                 rhs -= wi.T @ ui @ gi
             ds = -np.linalg.solve(S, rhs)
             dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
-            s_new = np.clip(s + ds, _OM_SHARED_LO + 1e-9, _OM_SHARED_HI - 1e-9)
+            s_new = np.clip(s + ds, s_lo, s_hi)
             g_new = np.clip(g + dg, lo_g, hi_g)
             res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
             c_new = cost_of(res_new)
@@ -391,7 +414,7 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
                noise_rel: float, background: np.ndarray | None = None) -> Imprint | None:
     """Measure one dark dot on its own: sub-pixel centre and apparent diameter by an image-model fit.
 
-    All twelve model parameters (own and shared, see :func:`measure_om_array`) are fitted to
+    All model parameters (own and shared, see :func:`measure_om_array`) are fitted to
     this dot alone; with several dots in one micrograph :func:`measure_om_array` is more
     accurate (the darkness, rim and PSF correlate with the diameter of a small dot).
 
@@ -436,7 +459,10 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
     shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
     out-of-focus dust) are returned as None. With fewer than three candidates every dot is
-    fitted on its own (:func:`measure_om`).
+    fitted on its own (:func:`measure_om`). When the plain model leaves structure inside the dots
+    (median in-dot residual above ``EXTENDED_MISFIT`` noise levels: thin dark edge and ridge lines,
+    facets shaded from light on one side), everything is fitted again with those terms added to the
+    shared parameters; a dot that pass rejects keeps its plain fit.
 
     Parameters
     ----------
@@ -450,6 +476,26 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     """
     if len(candidates) < 3:
         return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
+    out, misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, _NS_PLAIN)
+    if misfit > EXTENDED_MISFIT:
+        # the plain model leaves structure in the dots (edge and ridge lines, facets shaded from
+        # one side): fit again with those terms, shared by the dots
+        ext, _m = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all,
+                                 len(_OM_SHARED))
+        # a dot the extended fit rejects (e.g. at a vignetted corner) keeps its plain fit
+        out = [e if e is not None else p for e, p in zip(ext, out)]
+    return out
+
+
+#: median residual RMS inside the dots (in noise levels) above which the extended model is used
+EXTENDED_MISFIT = 1.25
+
+
+def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared):
+    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters.
+
+    Returns the imprints (or None) and the median residual RMS inside the dots in noise levels.
+    """
     radii = np.array([rad for _r, _c, rad in candidates], dtype=float)
     big = radii > 4 * np.median(radii)            # a stain or a shading, not a mark of this array
     patches = [None if b else _OmPatch(img, background, pixel_um, r, c, rad)
@@ -457,8 +503,8 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     ok = [i for i, p in enumerate(patches) if p is not None and p.ok]
     out = [None] * len(candidates)
     if not ok:
-        return out
-    s = _OM_S0.copy()
+        return out, 0.0
+    s = np.concatenate([_OM_S0, np.zeros(n_shared - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     starts = {i: patches[i].start(s) for i in ok}
     rad = np.array([patches[i].r_est for i in ok])
@@ -487,16 +533,17 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
         excluded |= bad
     # final: the shared parameters from every dot the shared model describes, all jointly
     good = [i for i in ok if fits[i][3] <= limit]
+    misfit = float(np.median([fits[i][3] for i in good])) / max(noise_rel, 1e-12)
     if refine_all and len(good) > len(joint):
         s, g, res = _om_block_fit([patches[i] for i in good], [fits[i][0] for i in good],
                                   [starts[i][1] for i in good], s, noise_rel)
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
-        return out
+        return out, misfit
     for i in good:
         gi, _r, res, _c = fits[i]
         if gi[2] < 0.25:
             continue
         out[i] = _om_imprint(gi, s, res, patches[i].patch.size)
-    return out
+    return out, misfit

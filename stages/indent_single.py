@@ -209,8 +209,10 @@ def _boundary(zb, level, inside_rc):
     return best + np.column_stack([g_r * step, g_c * step]), cut
 
 
-def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
+def _corner_on_ray(zc, rc0, rc1, slope_floor, noise):
     """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
+
+    ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``).
 
     The heights on the last few pixels before the coarse corner are fitted by a straight
     line; its zero crossing is the corner (where the surface meets the original level).
@@ -223,7 +225,6 @@ def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
     # follow the ridge (the valley between two facets) to the corner: aim the ray at the
     # lowest point across it, 5 px before the coarse corner
     nrm = np.array([-e[1], e[0]])
-    zc = ndimage.spline_filter(zr, order=3, mode="nearest")       # cubic coefficients, once per corner
     for _ in range(2):
         tt = np.arange(-3.0, 3.01, 0.25)
         q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
@@ -237,7 +238,7 @@ def _corner_on_ray(zr, rc0, rc1, slope_floor, noise):
             nrm = np.array([-e[1], e[0]])
     s = np.arange(length - 9.0, length + 3.0, 0.25)
     pts = rc0 + s[:, None] * e
-    ny, nx = zr.shape
+    ny, nx = zc.shape
     inb = (pts[:, 0] >= 0) & (pts[:, 0] <= ny - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= nx - 1)
     p = _bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
     # the straight part of the profile: clear of the noise and of the kink at the surface level
@@ -328,6 +329,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     nc = indenter.n_corners
     theta = np.angle(np.sum(rad ** 8 * np.exp(1j * nc * ang))) / nc
     corners = []
+    zc = ndimage.spline_filter(zr, order=3, mode="nearest")           # cubic coefficients, once per imprint
     for j in range(nc):
         phi = theta + 2 * np.pi * j / nc
         e = np.array([np.sin(phi), np.cos(phi)])            # (row, col) of the diagonal direction
@@ -337,7 +339,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
             return None
         proj = rel[sec] @ e
         coarse = cont_rc[sec][int(np.argmax(proj))]
-        corners.append(_corner_on_ray(zr, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise)
+        corners.append(_corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise)
                        + [r0, c0])
     corners_rc = np.array(corners)
     corners_um = corners_rc[:, ::-1] * pixel_um

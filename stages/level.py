@@ -185,7 +185,8 @@ def feature_mask(z, sigma, min_area_px: int = 6, grow_px: int = 3, k: float = 5.
         small[0] = True
         bad[small[lab]] = False
     g = 2 * grow_px + 1
-    return ndimage.binary_dilation(bad, structure=np.ones((g, g), bool))
+    # dilation by a g x g square = a separable maximum filter (zero outside), several times faster
+    return ndimage.maximum_filter(bad.view(np.uint8), size=g, mode="constant", cval=0).astype(bool)
 
 
 def level_afm(z_nm: np.ndarray, pixel_um: float = 1.0, n_iter: int = 3, bow_degree: int = 3) -> Levelled:
