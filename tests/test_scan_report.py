@@ -219,6 +219,8 @@ def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, m
 def test_no_fork_when_turned_off_or_loaded(monkeypatch):
     monkeypatch.setattr(os, "getloadavg", lambda: (0.1, 0.1, 0.1))
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    import threading
+    monkeypatch.setattr(threading, "active_count", lambda: 1)      # pytest-xdist's worker runs threads
     monkeypatch.setenv(html.FORK_ENV, "0")
     assert not html._fork_helps()                                   # turned off
     monkeypatch.delenv(html.FORK_ENV, raising=False)
