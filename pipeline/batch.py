@@ -37,11 +37,19 @@ def read_batch_config(path) -> dict:
     """Read batch.toml: ``[<flow>]`` option defaults and ``[<flow>.tolerance]`` limits.
 
     Returns flow name -> {"options": dict, "tolerances": dict}, defaults filled in.
-    Unknown flows, options and tolerance keys are refused (typos must not pass).
+    Unknown flows, options and tolerance keys are refused (typos must not pass), and
+    every flow's options are checked by its ``validate_options`` (whether or not the
+    folder holds inputs of that flow).
     """
     flows = all_flows()
-    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()},
-                            {n: f.descriptor.tolerances for n, f in flows.items()})
+    cfg = read_config_file(path, {n: f.descriptor.options for n, f in flows.items()},
+                           {n: f.descriptor.tolerances for n, f in flows.items()})
+    for n, f in flows.items():          # every flow, inputs or not: a bad value stops the batch before any work
+        try:
+            f.descriptor.check_options(cfg[n]["options"])
+        except MarkcalError as exc:
+            raise MarkcalError(f"[{n}] {exc.message}", path or "batch defaults") from None
+    return cfg
 
 
 # ------------------------------------------------------------------ discovery

@@ -401,6 +401,7 @@ def _claims(path) -> bool:
 
 def path_options(o: dict) -> PathOptions:
     """:class:`PathOptions` from the descriptor's option dict (CLI or batch.toml); checks the values."""
+    _method(o["method"])
     for k in ("generations", "population", "ga_max_strokes"):
         if o[k] < 1:
             raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
@@ -419,6 +420,7 @@ FLOW = FlowDescriptor(
     name="path", help="marking job -> marking order with short jumps (GA, local search), report",
     claims=_claims,
     run=lambda path, spec, options, progress=None: run_path(path, path_options(options), progress=progress),
+    validate_options=path_options,
     options={"method": "auto", "seed": 0, "tolerance_mm": 0.01, "keep_layer_order": False, "metric": "distance",
              "jump_speed_mm_s": 3000.0, "settle_us": 200.0, "mark_speed_mm_s": 1000.0, "dwell_us": 500.0,
              "generations": 3000, "population": 100, "ga_max_strokes": 500,
