@@ -399,12 +399,17 @@ def _claims(path) -> bool:
     return isinstance(d, dict) and "strokes" in d
 
 
+#: caps of the GA (its iteration cap: generations; population x strokes is its memory)
+MAX_GENERATIONS = 1_000_000
+MAX_POPULATION = 10_000
+
+
 def path_options(o: dict) -> PathOptions:
     """:class:`PathOptions` from the descriptor's option dict (CLI or batch.toml); checks the values."""
     _method(o["method"])
-    for k in ("generations", "population", "ga_max_strokes"):
-        if o[k] < 1:
-            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
+    for k, most in (("generations", MAX_GENERATIONS), ("population", MAX_POPULATION), ("ga_max_strokes", 100_000)):
+        if not 1 <= o[k] <= most:
+            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1 and at most {most:,} (got {o[k]})")
     if not o["kicks_per_stroke"] >= 0:
         raise MarkcalError("--kicks-per-stroke must be >= 0")
     timing = Timing(metric=o["metric"], jump_speed_mm_s=o["jump_speed_mm_s"], settle_s=o["settle_us"] * 1e-6,
