@@ -229,3 +229,13 @@ def scan_outputs(folder, key_columns: dict | None = None) -> list:
                     bad.append(f"{p}: {tok!r}")
                     break
     return bad
+
+
+def grid_result(folder, seed: int = 3):
+    """A grid flow result folder (render a measured grid, run ``markcal grid`` on it): a source for export."""
+    from markcal.pipeline.cli import main
+    folder = os.fspath(folder)
+    assert main(["render", "grid", "--seed", str(seed), "--out", os.path.join(folder, "m"), "--quiet"]) == 0
+    assert main(["grid", os.path.join(folder, "m", "measured.csv"), "--out", os.path.join(folder, "cal"), "--quiet",
+                 "--no-report"]) in (0, 4)
+    return os.path.join(folder, "cal")

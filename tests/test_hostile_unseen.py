@@ -8,11 +8,13 @@ from __future__ import annotations
 
 import json
 import os
+import pathlib
 import struct
 
 import numpy as np
 import pytest
 
+import hostile_run
 from hostile_run import assert_refused, listing, run, scan_outputs
 
 PLATE = "[grid]\nrows = 7\ncols = 7\npitch_mm = 10.0\n"
@@ -254,8 +256,9 @@ def test_indents_array_spec(tmp_path, case):
             "kind_unknown": ARRAY + "[indenter]\nkind = \"spoon\"\n",
             "pitch_inf": ARRAY.replace("pitch_um = 20.0", "pitch_um = inf")}[case]
     spec = _w(tmp_path, "array.toml", text)
+    needle = "100000 x 100000" if case == "rows_cols_huge" else "array.toml"     # too big for the image: names it
     _refused(["indents", img, "--array", spec, "--pixel-size-um", "0.1", "--out", _out(tmp_path), "--quiet"],
-             tmp_path, "array.toml")
+             tmp_path, needle)
 
 
 def test_indents_negative_pixel_size_option(tmp_path):
@@ -449,20 +452,22 @@ def test_selfcal_session(tmp_path, case):
 
 @pytest.fixture(scope="module")
 def grid_result(tmp_path_factory):
-    from markcal.pipeline.cli import main
-    d = tmp_path_factory.mktemp("gridres")
-    assert main(["render", "grid", "--seed", "2", "--out", str(d / "m"), "--quiet"]) == 0
-    assert main(["grid", str(d / "m" / "measured.csv"), "--out", str(d / "cal"), "--no-report", "--quiet"]) in (0, 4)
-    return d / "cal"
+    return pathlib.Path(hostile_run.grid_result(tmp_path_factory.mktemp("gridres"), seed=2))
 
 
-@pytest.mark.parametrize("case", ["model_zero_byte", "summary_other_version", "summary_zero_byte"])
+@pytest.mark.parametrize("case", ["model_zero_byte", "model_other_version", "summary_other_version",
+                                  "summary_zero_byte"])
 def test_export_from_a_damaged_result(tmp_path, grid_result, case):
     import shutil
     cal = tmp_path / "cal"
     shutil.copytree(grid_result, cal)
     if case == "model_zero_byte":
         (cal / "model.json").write_text("")
+        needle = "model.json"
+    elif case == "model_other_version":
+        m = json.loads((cal / "model.json").read_text())
+        m["model"]["format"] = "markcal-grid-model-9"
+        (cal / "model.json").write_text(json.dumps(m))
         needle = "model.json"
     elif case == "summary_zero_byte":
         (cal / "summary.json").write_text("")
