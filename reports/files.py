@@ -71,12 +71,13 @@ def check_out_file(out_path, inputs=()) -> None:
         if rp == ip or ip.startswith(rp.rstrip(os.sep) + os.sep):
             raise MarkcalError(f"--out would overwrite an input ({p})", out_path)
     check_path_length(out_path)
-    check_writable(os.path.dirname(os.path.abspath(out_path)))
+    check_writable(os.path.dirname(os.path.abspath(out_path)), named=out_path)
 
 
-def check_writable(folder) -> None:
+def check_writable(folder, named=None) -> None:
     """Refuse, before any computation, an output folder that cannot be made or written in (``/proc/...``, a
-    read-only mount): a probe folder is made in it, or in its nearest existing parent, and removed."""
+    read-only mount): a probe folder is made in it, or in its nearest existing parent, and removed. The error
+    names ``named`` (the file to write) when given, else the folder."""
     import tempfile
 
     from markcal.stages.errors import MarkcalError
@@ -86,7 +87,7 @@ def check_writable(folder) -> None:
     try:
         os.rmdir(tempfile.mkdtemp(prefix=".markcal-probe-", dir=probe_in))
     except OSError as exc:
-        raise MarkcalError(f"cannot write here ({exc.strerror or exc})", folder) from None
+        raise MarkcalError(f"cannot write here ({exc.strerror or exc})", named or folder) from None
 
 
 def check_path_length(path) -> None:

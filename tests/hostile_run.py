@@ -189,12 +189,15 @@ def scan_outputs(folder, key_columns: dict | None = None) -> list:
     """Every problem in the text outputs under ``folder``: nan/inf tokens, numbers beyond ±1e15, and empty CSV
     cells or JSON nulls where :data:`ALLOWED_EMPTY` does not allow them.
 
-    ``key_columns`` (flow -> its key-figure columns) lets a row of the batch index (summary.csv, summary.json
-    ``rows``) leave other flows' key figures empty, and its own when it failed to process.
+    ``key_columns`` (flow -> its key-figure columns; default: every registered flow's) lets a row of the batch
+    index (summary.csv, summary.json ``rows``) leave other flows' key figures empty, and its own when it failed.
     """
     import csv
     import io
     import json
+    if key_columns is None:
+        from markcal.pipeline.registry import all_flows
+        key_columns = {n: f.descriptor.key_names for n, f in all_flows().items()}
     bad = []
     for root, _, files in os.walk(folder):
         for f in files:
