@@ -106,8 +106,8 @@ def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: f
     from scipy.optimize import least_squares      # here: the CLI imports this module to list the models
     cmd = np.asarray(cmd_mm, float)
     land = np.asarray(land_mm, float)
-    check_values(cmd, "cmd_mm")                   # non-finite input refused before the solver sees it
-    check_values(land, "land_mm")
+    check_values(cmd, "cmd_mm", limit=np.inf)     # non-finite input refused before the solver sees it
+    check_values(land, "land_mm", limit=np.inf)
     radius = float(max(np.max(np.abs(cmd)), 1.0))
     sig = _prior_sigma(d0_mm, e0_mm, radius)
     # a parameter one prior sigma away costs as much as a 10 µm residual: pins only what the data cannot see

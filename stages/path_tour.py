@@ -255,7 +255,8 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
     """
     opt = options or LocalSearchOptions()
     if job.n:                                     # the move loops assume finite coordinates
-        check_values(np.concatenate([np.asarray(s.xy_mm, float).reshape(-1, 2) for s in job.strokes]), "xy_mm")
+        check_values(np.concatenate([np.asarray(s.xy_mm, float).reshape(-1, 2) for s in job.strokes]), "xy_mm",
+                     limit=np.inf)
     if job.n <= 3:
         return _exhaustive(job, timing)
     a_, b_ = timing.cost_coefficients

@@ -99,7 +99,7 @@ def fit_plane(xyz_mm: np.ndarray, threshold_mm: float = 0.1, seed: int = 0,
     """
     if len(xyz_mm) < 100:
         raise MarkcalError(f"only {len(xyz_mm)} points: too few to fit a plane")
-    check_values(xyz_mm, "xyz_mm")                # RANSAC and the refits assume finite points
+    check_values(xyz_mm, "xyz_mm", limit=np.inf)  # RANSAC and the refits assume finite points
     rng = np.random.default_rng(seed)
     lo, hi = np.percentile(xyz_mm[:, :2], [5, 95], axis=0)
     mid, half = (lo + hi) / 2, (hi - lo) / 2
