@@ -298,6 +298,9 @@ JOBS = {
     "svg_use_mutual": ("j.svg", _SVG.format('<g id="a"><use href="#b"/></g><g id="b"><use href="#a"/>'
                                             '<path d="M0 0 L1 1"/></g>')),
     "svg_billion_laughs": ("j.svg", _LAUGHS),
+    "svg_use_bomb": ("j.svg", _SVG.format('<defs><path id="l0" d="M0 0 L1 1"/>' + "".join(
+        f'<g id="l{k}">' + f'<use href="#l{k - 1}" x="1"/>' * 10 + "</g>" for k in range(1, 9))
+        + '</defs><use href="#l8"/>')),
     "svg_viewbox_zero": ("j.svg", _SVG.replace('viewBox="0 0 100 100"', 'viewBox="0 0 0 0"')
                          .format('<path d="M0 0 L10 10"/>')),
     "svg_empty": ("j.svg", ""),
@@ -629,3 +632,12 @@ def test_good_log_under_a_hostile_name_runs_and_writes_clean_outputs(tmp_path, n
     s = _clean_run(["servo", "--trace", p, "--out", _out(tmp_path), "--quiet", "--no-report"], tmp_path,
                    _out(tmp_path))
     assert s["n_samples"] == len(_STEP) and s["source"] == p
+
+
+def test_svg_with_legit_use_references_reads_every_copy(tmp_path):
+    """The <use> cycle and bomb checks leave ordinary references alone: a path used three times is three strokes."""
+    p = _w(tmp_path, "j.svg", _SVG.format('<defs><path id="p" d="M0 0 L10 0"/></defs>'
+                                          '<use href="#p" y="5"/><use xlink:href="#p" y="15"/>'
+                                          '<g id="g"><use href="#p" y="25"/></g>'))
+    s = _clean_run(["path", p, "--out", _out(tmp_path), "--quiet", "--no-report"], tmp_path, _out(tmp_path))
+    assert s["n_strokes"] == 3
