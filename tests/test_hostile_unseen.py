@@ -129,15 +129,20 @@ PLATES = {
 }
 
 
-@pytest.mark.parametrize("case", sorted(PLATES))
-def test_scan_plate_spec(tmp_path, case):
+@pytest.fixture(scope="module")
+def small_cloud(tmp_path_factory):
+    """A rendered 5 x 5 plate's cloud (one render for every plate-spec case)."""
     from markcal.pipeline.cli import main
-    assert main(["render", "scan", "--rows", "5", "--cols", "5", "--seed", "1", "--out", str(tmp_path / "p"),
-                 "--quiet"]) == 0
+    d = tmp_path_factory.mktemp("plate")
+    assert main(["render", "scan", "--rows", "5", "--cols", "5", "--seed", "1", "--out", str(d), "--quiet"]) == 0
+    return str(d / "cloud.npy")
+
+
+@pytest.mark.parametrize("case", sorted(PLATES))
+def test_scan_plate_spec(tmp_path, small_cloud, case):
     text = PLATES[case]
     spec = _w(tmp_path, "bad.toml", PLATE.encode("utf-16") if text is None else text)
-    _refused(["scan", str(tmp_path / "p" / "cloud.npy"), "--plate", spec, "--out", _out(tmp_path), "--quiet"],
-             tmp_path, "bad.toml")
+    _refused(["scan", small_cloud, "--plate", spec, "--out", _out(tmp_path), "--quiet"], tmp_path, "bad.toml")
 
 
 def test_scan_input_is_a_directory_named_like_a_cloud(tmp_path):
