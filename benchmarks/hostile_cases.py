@@ -58,6 +58,7 @@ def cases(d: str) -> dict:
     lines[2] = ",".join(c)
     with open(os.path.join(sess, "axes.csv"), "w") as fh:
         fh.write("\n".join(lines) + "\n")
+    new = _unseen_cases(d)
     o = os.path.join(d, "o")
     return {
         "PLY declaring 1e9 faces (11 MB)": ["scan", ply, "--plate", plate, "--out", o],
@@ -68,7 +69,41 @@ def cases(d: str) -> dict:
         "NPY cloud z = 1e300": ["scan", npy, "--plate", plate, "--out", o],
         "pmcal axes.csv 1e308": ["pmcal", sess, "--out", o],
         "drift --noise-um 1e300": ["drift", os.path.join(sess, "drift.csv"), "--noise-um", "1e300", "--out", o],
+        **new,
     }
+
+
+def _unseen_cases(d: str) -> dict:
+    """The heaviest of tests/test_hostile_unseen.py (round 2 of issue 17)."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+    import test_hostile_unseen as u
+    o = os.path.join(d, "o")
+    out = {}
+    for label, table, key, cmd in (("TIFF declaring 50000² float32", u.TIFFS, "declared_2e9_pixels", "indents"),
+                                   ("TIFF with an IFD loop", u.TIFFS, "ifd_loop", "indents")):
+        p = os.path.join(d, f"{key}.tif")
+        with open(p, "wb") as fh:
+            fh.write(table[key])
+        out[label] = [cmd, p, "--out", o]
+    for label, key in (("SVG billion laughs", "svg_billion_laughs"), ("SVG <use> recursion", "svg_use_recursion"),
+                       ("DXF circular block refs", "dxf_circular_blocks"), ("DXF HATCH of 1e8 vertices", "dxf_huge_hatch"),
+                       ("G-code arc of 1e9 turns", "gcode_1e9_arcs"), ("G-code arc radius 1e12", "gcode_arc_huge_radius")):
+        name, data = u.JOBS[key]
+        p = os.path.join(d, key + os.path.splitext(name)[1])
+        with open(p, "w") as fh:
+            fh.write(data)
+        out[label] = ["path", p, "--out", o]
+    name, data = u.LOGS["time_step_1e-300"]
+    p = os.path.join(d, "tiny_steps.csv")
+    with open(p, "w") as fh:
+        fh.write(data)
+    out["servo log, steps of 1e-300 s"] = ["servo", "--trace", p, "--out", o]
+    p = os.path.join(d, "huge_plate.toml")
+    with open(p, "w") as fh:
+        fh.write(u.PLATES["rows_cols_huge_field"])
+    out["plate 1000 x 1000 at 1 m"] = ["scan", os.path.join(d, "c.npy"), "--plate", p, "--out", o]
+    out["path --out /proc/self/x"] = ["path", os.path.join(d, "gcode_1e9_arcs.gcode"), "--out", "/proc/self/x"]
+    return out
 
 
 def main() -> None:
@@ -87,6 +122,7 @@ def main() -> None:
                 err = errf.read().decode("utf-8", "replace").strip()
             print(f"{name:34s} {os.waitstatus_to_exitcode(status):4d} {len(err.splitlines()):5d} {wall:7.2f} "
                   f"{ru.ru_utime + ru.ru_stime:6.2f} {ru.ru_maxrss / 1024:8.0f}   …{err[-80:]}")
+
 
 if __name__ == "__main__":
     main()

@@ -38,11 +38,18 @@ def read_batch_config(path) -> dict:
 
     Returns flow name -> {"options": dict, "tolerances": dict}: options with defaults filled in, and
     batch.toml's limits, which override each input's default limits (the flow's, or a scan's per purpose).
-    Unknown flows, options and tolerance keys are refused (typos must not pass).
+    Unknown flows, options and tolerance keys are refused (typos must not pass), and every flow's
+    options are checked by its ``validate_options`` (whether or not the folder holds inputs of that flow).
     """
     flows = all_flows()
     # the jobs carry batch.toml's limits only: each input's defaults depend on its summary (a scan's purpose)
-    return read_config_file(path, {n: f.descriptor.options for n, f in flows.items()}, {})
+    cfg = read_config_file(path, {n: f.descriptor.options for n, f in flows.items()}, {})
+    for n, f in flows.items():          # every flow, inputs or not: a bad value stops the batch before any work
+        try:
+            f.descriptor.check_options(cfg[n]["options"])
+        except MarkcalError as exc:
+            raise MarkcalError(f"[{n}] {exc.message}", path or "batch defaults") from None
+    return cfg
 
 
 # ------------------------------------------------------------------ discovery

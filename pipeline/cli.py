@@ -93,11 +93,13 @@ def main(argv=None) -> int:
 
 
 _ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+#: control characters and bidirectional overrides (a file name holding U+202E turns the line around)
+_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
 
 
 def _error_line(text: str) -> None:
     """``markcal: error: TEXT`` as one line: no ANSI colour codes, no line breaks, no unprintable bytes."""
-    text = " ".join(_ANSI.sub("", text).split())
+    text = _UNSAFE.sub(lambda m: f"\\u{ord(m.group()):04x}", " ".join(_ANSI.sub("", text).split()))
     print(f"markcal: error: {text}".encode("utf-8", "backslashreplace").decode("utf-8"), file=sys.stderr)
 
 

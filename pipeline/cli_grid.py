@@ -16,6 +16,9 @@ def cmd_grid(args) -> int:
     if args.cor and (os.path.isdir(args.cor) or os.path.realpath(args.cor) == os.path.realpath(args.measured)):
         raise MarkcalError("--cor must name the .cor file to write (not a folder, not the input)", args.cor)
     options = {k: getattr(args, k) for k in get_flow("grid").descriptor.options if getattr(args, k) is not None}
+    for k in ("units_per_mm", "lens_mm", "d_mm", "grid_step_mm"):       # 0 means "from the input" only in batch.toml
+        if k in options and not options[k] > 0:
+            raise MarkcalError(f"--{k.replace('_', '-')} must be positive (got {options[k]})")
     res, paths = run_and_write("grid", args.measured, args.out, options=options, progress=say, **run_options(args))
     s = res.summary
     cv = ", ".join(f"{k} {v:.4f}" for k, v in res.choice.cv_rmse_mm.items())

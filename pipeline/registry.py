@@ -200,11 +200,7 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     """
     flow = get_flow(name)
     d = flow.descriptor
-    opts = dict(d.options)
-    for k, v in (options or {}).items():
-        if k not in opts:
-            raise MarkcalError(f"unknown option '{k}' of the {name} flow (known: {', '.join(opts)})")
-        opts[k] = v
+    opts = d.check_options(options or {})
     if d.needs_spec and not spec_path:
         raise MarkcalError("no spec file: expected <stem>.toml or the folder's default spec beside the input",
                            input_path)

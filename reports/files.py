@@ -21,7 +21,10 @@ def atomic_write_bytes(path, data: bytes) -> None:
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
     os.makedirs(folder, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".part", dir=folder)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix="." + os.path.basename(path) + ".", suffix=".part", dir=folder)
+    except OSError as exc:                        # name the file asked for, not the temporary one
+        raise OSError(exc.errno, exc.strerror, path) from None
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(data)
@@ -53,6 +56,7 @@ def check_out_dir(out_dir, inputs=()) -> None:
         if rp == out or rp.startswith(out.rstrip(os.sep) + os.sep):
             raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
                                "choose another folder", out_dir)
+    check_writable(out_dir)
 
 
 def check_out_file(out_path, inputs=()) -> None:
@@ -67,6 +71,23 @@ def check_out_file(out_path, inputs=()) -> None:
         if rp == ip or ip.startswith(rp.rstrip(os.sep) + os.sep):
             raise MarkcalError(f"--out would overwrite an input ({p})", out_path)
     check_path_length(out_path)
+    check_writable(os.path.dirname(os.path.abspath(out_path)), named=out_path)
+
+
+def check_writable(folder, named=None) -> None:
+    """Refuse, before any computation, an output folder that cannot be made or written in (``/proc/...``, a
+    read-only mount): a probe folder is made in it, or in its nearest existing parent, and removed. The error
+    names ``named`` (the file to write) when given, else the folder."""
+    import tempfile
+
+    from markcal.stages.errors import MarkcalError
+    probe_in = os.path.abspath(folder)
+    while not os.path.exists(probe_in) and os.path.dirname(probe_in) != probe_in:
+        probe_in = os.path.dirname(probe_in)
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".markcal-probe-", dir=probe_in))
+    except OSError as exc:
+        raise MarkcalError(f"cannot write here ({exc.strerror or exc})", named or folder) from None
 
 
 def check_path_length(path) -> None:

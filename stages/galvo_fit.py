@@ -21,7 +21,11 @@ import numpy as np
 
 from . import galvo
 from .errors import MarkcalError
+from .limits import check_values
 from .grid_smooth import Poly3, ThinPlate, fit_poly3, fit_thin_plate, frame_of
+
+#: evaluation cap of the physical model's Levenberg-Marquardt fit (it converges in well under 100)
+MAX_NFEV = 2000
 
 KINDS = ("physical+rbf", "rbf", "poly3")
 PARAM_NAMES = ("dd_mm", "de_mm", "gain_x_err", "gain_y_err", "zero_x_rad", "zero_y_rad", "coupling_xy",
@@ -102,6 +106,8 @@ def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: f
     from scipy.optimize import least_squares      # here: the CLI imports this module to list the models
     cmd = np.asarray(cmd_mm, float)
     land = np.asarray(land_mm, float)
+    check_values(cmd, "cmd_mm", limit=np.inf)     # non-finite input refused before the solver sees it
+    check_values(land, "land_mm", limit=np.inf)
     radius = float(max(np.max(np.abs(cmd)), 1.0))
     sig = _prior_sigma(d0_mm, e0_mm, radius)
     # a parameter one prior sigma away costs as much as a 10 µm residual: pins only what the data cannot see
@@ -111,7 +117,7 @@ def fit_physical(cmd_mm: np.ndarray, land_mm: np.ndarray, d0_mm: float, e0_mm: f
         return np.r_[(_land(cmd, p, d0_mm, e0_mm, radius) - land).ravel(), w_prior * p / sig]
 
     p0 = np.zeros(len(PARAM_NAMES)) if start is None else np.asarray(start, float)
-    sol = least_squares(resid, p0, method="lm", x_scale=sig, xtol=1e-12, ftol=1e-12)
+    sol = least_squares(resid, p0, method="lm", x_scale=sig, xtol=1e-12, ftol=1e-12, max_nfev=MAX_NFEV)
     return PhysicalGalvo(float(d0_mm), float(e0_mm), radius, sol.x)
 
 

@@ -262,6 +262,8 @@ def _mean_diagonal(c):
 def _refine(img, corners, apex, d_px):
     """Coarse-to-fine quadrilateral fit; returns corners (4, 2), apex (2,), model of the last level."""
     p = np.concatenate([apex, corners.ravel()])
+    if not 0 < d_px < 1e6:                     # the pyramid loops below need a finite size
+        raise MarkcalError(f"imprint size {d_px:g} px is out of range")
     f = 1
     while d_px / f > 48:
         f *= 2

@@ -171,7 +171,10 @@ def read_dxf(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
                            "use mm, cm, m, inch, foot, mil or micron", source)
     scale = INSUNITS_MM[code]
     rows, unsupported = [], Counter()
-    _walk(doc.modelspace(), None, tolerance_mm, scale, rows, unsupported, None)
+    try:
+        _walk(doc.modelspace(), None, tolerance_mm, scale, rows, unsupported, None)
+    except MarkcalError as exc:
+        raise exc.with_path(source) from None
     if not rows:
         extra = f" (only {', '.join(f'{k} x{v}' for k, v in sorted(unsupported.items()))})" if unsupported else ""
         raise MarkcalError(f"no geometry: no entities the path flow can mark{extra}", source)

@@ -189,6 +189,8 @@ def read_gcode(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
 
 def _arc(x, y, nx, ny, w, factor, ij_incremental, clockwise, tol, lineno, source):
     """Flattened vertices of a G2 (clockwise) / G3 arc from (x, y) to (nx, ny), mm."""
+    if w.get("P", 1) != 1:
+        raise MarkcalError(f"line {lineno}: arcs of several turns (P = {w['P']:g}) are not supported", source)
     if "R" in w:
         r = abs(w["R"]) * factor
         dx, dy = nx - x, ny - y

@@ -31,6 +31,9 @@ __all__ = ["read_svg", "write_svg", "SvgPayload", "MM_PER_PX"]
 MM_PER_PX = 25.4 / 96.0
 SVG_NS = "http://www.w3.org/2000/svg"
 INKSCAPE_NS = "http://www.inkscape.org/namespaces/inkscape"
+XLINK_NS = "http://www.w3.org/1999/xlink"
+#: the most elements ``<use>`` references may expand into (a "use bomb" of nested references is refused)
+MAX_USE_INSTANCES = 1_000_000
 _SHAPES = {"path", "rect", "circle", "ellipse", "line", "polyline", "polygon", "use"}
 #: px per unit, exact (svgelements rounds inch per mm to 0.0393701, 5e-7 off)
 _UNITS = {"": 1.0, "px": 1.0, "mm": 96 / 25.4, "cm": 96 / 2.54, "in": 96.0, "pt": 96 / 72, "pc": 16.0,
@@ -63,6 +66,36 @@ def _parse_xml(data: bytes, source):
     if _local(root.tag) != "svg":
         raise MarkcalError(f"not an SVG document (root element <{_local(root.tag)}>)", source)
     return root, tuple(dict(ns).items())
+
+
+def _check_uses(by_id: dict, source) -> None:
+    """Refuse ``<use>`` references that form a cycle (a group using itself) or expand past
+    :data:`MAX_USE_INSTANCES` elements, before svgelements follows them."""
+    def target(u):
+        h = u.get("href") or u.get(f"{{{XLINK_NS}}}href") or ""
+        return h[1:] if h.startswith("#") and h[1:] in by_id else None
+    deps = {i: [t for u in el.iter() if _local(u.tag) == "use" and (t := target(u))] for i, el in by_id.items()}
+    count, on_path = {}, set()
+    for start in deps:
+        if start in count:
+            continue
+        stack = [(start, iter(deps[start]))]
+        on_path.add(start)
+        while stack:
+            node, it = stack[-1]
+            nxt = next(it, None)
+            if nxt is None:
+                stack.pop()
+                on_path.discard(node)
+                count[node] = 1 + sum(count[t] for t in deps[node])
+                if count[node] > MAX_USE_INSTANCES:
+                    raise MarkcalError(f"<use> references under id '{node}' expand into more than "
+                                       f"{MAX_USE_INSTANCES:,} elements", source)
+            elif nxt in on_path:
+                raise MarkcalError(f"<use> references form a cycle through id '{nxt}'", source)
+            elif nxt not in count:
+                on_path.add(nxt)
+                stack.append((nxt, iter(deps[nxt])))
 
 
 def _register(namespaces):
@@ -171,6 +204,7 @@ def read_svg(data: bytes, tolerance_mm: float = 0.01, source=None) -> JobFile:
             el.set("id", f"markcal-{k}")
             k += 1
     by_id = {el.get("id"): el for el in root.iter() if el.get("id")}
+    _check_uses(by_id, source)
     ET.SubElement(root, f"{{{SVG_NS}}}path", {"id": _PROBE, "d": "M 0 0 L 1 0 L 0 1", "fill": "none"})
     tagged = ET.tostring(root, encoding="utf-8", xml_declaration=True)
     try:

@@ -28,6 +28,7 @@ from itertools import permutations, product
 
 import numpy as np
 
+from .limits import check_values
 from .path_job import CONTOUR, POLYLINE, Job, Timing, Tour, endpoints, tour_cost, tour_points
 from .path_tour_cand import alpha_candidates, nearest_neighbour_picks
 from .path_tour_moves import lk_work, optimise
@@ -253,6 +254,9 @@ def local_search(job: Job, tour: Tour, timing: Timing, options: LocalSearchOptio
         Never costlier than ``best_entries(job, tour)``.
     """
     opt = options or LocalSearchOptions()
+    if job.n:                                     # the move loops assume finite coordinates
+        check_values(np.concatenate([np.asarray(s.xy_mm, float).reshape(-1, 2) for s in job.strokes]), "xy_mm",
+                     limit=np.inf)
     if job.n <= 3:
         return _exhaustive(job, timing)
     a_, b_ = timing.cost_coefficients

@@ -7,6 +7,7 @@ import numpy as np
 from numba import njit
 
 from .errors import MarkcalError
+from .limits import check_values
 from .quantile import percentiles
 
 
@@ -97,6 +98,7 @@ def fit_plane(xyz_mm: np.ndarray, threshold_mm: float = 0.1, seed: int = 0,
     """
     if len(xyz_mm) < 100:
         raise MarkcalError(f"only {len(xyz_mm)} points: too few to fit a plane")
+    check_values(xyz_mm, "xyz_mm", limit=np.inf)  # RANSAC and the refits assume finite points
     rng = np.random.default_rng(seed)
     (lo_x, hi_x), (lo_y, hi_y) = percentiles(xyz_mm[:, 0], [5, 95]), percentiles(xyz_mm[:, 1], [5, 95])
     lo, hi = np.array([lo_x, lo_y]), np.array([hi_x, hi_y])

@@ -183,6 +183,16 @@ def _first_bad(raw, col: np.ndarray):
     return int(bad[0]), raw[int(bad[0])]
 
 
+def check_log_units(time_unit: str, pos_unit: str, counts_per_mm: float) -> None:
+    """Refuse an unknown time or position unit, or counts without a positive finite counts per mm."""
+    if time_unit not in TIME_UNITS:
+        raise MarkcalError(f"time unit must be one of {', '.join(TIME_UNITS)} (got {time_unit!r})")
+    if pos_unit not in POS_UNITS:
+        raise MarkcalError(f"position unit must be one of {', '.join(POS_UNITS)} (got {pos_unit!r})")
+    if pos_unit == "counts" and not (counts_per_mm > 0 and np.isfinite(counts_per_mm)):
+        raise MarkcalError(f"positions in counts need a positive counts per mm (got {counts_per_mm:g})")
+
+
 def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit="s", pos_unit="mm",
              counts_per_mm: float = 0.0) -> DriveLog:
     """Read a drive log into time (s), reference and position (mm).
@@ -209,12 +219,7 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
     import pandas as pd
 
     path = os.fspath(path)
-    if time_unit not in TIME_UNITS:
-        raise MarkcalError(f"time unit must be one of {', '.join(TIME_UNITS)} (got {time_unit!r})")
-    if pos_unit not in POS_UNITS:
-        raise MarkcalError(f"position unit must be one of {', '.join(POS_UNITS)} (got {pos_unit!r})")
-    if pos_unit == "counts" and not (counts_per_mm > 0 and np.isfinite(counts_per_mm)):
-        raise MarkcalError(f"positions in counts need a positive counts per mm (got {counts_per_mm:g})")
+    check_log_units(time_unit, pos_unit, counts_per_mm)
     lay = sniff_layout(path)
     check_file_ends(path)
     roles = (("time", time_col), ("reference", ref_col), ("position", pos_col))
@@ -265,6 +270,10 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
                     pos_mm=cols["position"] * scale, columns=names, first_data_line=lay.first_data_line)
 
 
+#: the shortest median sample step accepted, s (no drive log is sampled faster than 1 GHz)
+MIN_STEP_S = 1e-9
+
+
 def check_log(log: DriveLog, path=None) -> float:
     """Refuse time out of order or repeated, gaps over 10 samples, a reference that never moves.
 
@@ -279,6 +288,9 @@ def check_log(log: DriveLog, path=None) -> float:
         raise MarkcalError(f"out of time order: line {first + i + 1} {what}: {log.columns[0]} = {t[i + 1]:.9g} s "
                            f"after {t[i]:.9g} s on line {first + i} (times must increase)", path)
     med = float(np.median(dt))
+    if med < MIN_STEP_S:
+        raise MarkcalError(f"median sample step {med:.3g} s is below {MIN_STEP_S:g} s (a 1 GHz log): is the time "
+                           "unit right (--time-unit)?", path)
     gaps = np.flatnonzero(dt > MAX_GAP_SAMPLES * med)
     if len(gaps):
         i = int(gaps[0])

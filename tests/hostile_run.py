@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import resource
 import signal
 import sys
@@ -124,3 +125,120 @@ def finite_text(text: str) -> bool:
 
 def huge(x: float) -> bool:
     return not math.isfinite(x) or abs(x) > 1e12
+
+
+# ----------------------------------------------------------------------------- scanning outputs
+
+#: a number token in a text output, and the tokens that must never appear
+NUMBER = re.compile(rb"(?<![\w.])-?\d+(?:\.\d*)?(?:[eE][-+]?\d+)(?![\w.])")
+NONFINITE = re.compile(rb"(?i)(?<![a-z_])(nan|-?inf(inity)?)(?![a-z_])")
+
+#: where an output may hold an empty CSV cell or a JSON null (markcal writes NaN as both), with the doc that
+#: says so: (file name pattern, column or key pattern, reference)
+ALLOWED_EMPTY = (
+    (r"^summary\.(csv|json)$", r"^(reason|failed_checks|checks|check_labels|spec|report|group)$",
+     "docs/batch.md 'Outputs in OUT_DIR': reason (for errors), failed_checks/checks (limits applied), "
+     "spec and report ('' if none), group ('' at the top)"),
+    (r"^summary\.(csv|json)$", r"^runtime_s$", "docs/batch.md: runtime_s empty when reused"),
+    (r"^(summary\.(csv|json)|metrics\.csv|moves\.csv)$", r"^(settling_time_s|rise_time_s)$",
+     "docs/servo.md summary.json and moves.csv: settling empty when a move never settles"),
+    (r"^summary\.json$", r"^(settling_time|rise_time)_\w+$", "docs/servo.md: statistics over the settled moves"),
+    (r"^(summary\.(csv|json)|metrics\.csv|traces\.csv)$",
+     r"^(frequency_hz|phase_lag_deg|phase_lag_s|gain|overshoot_um|overshoot_pct|settle_band_um|settle_band_pct)$",
+     "docs/servo.md metrics.csv/traces.csv: 'Empty = not applicable' (frequency for sines only); docs/batch.md: a "
+     "null key (e.g. the overshoot of a tracking trace) is not applicable; settle_band_um or _pct, the other NaN"),
+    (r"^summary\.json$", r"^(n_neurons|spread_mm|mse_goal_mm2|predicted_residual_\w*)$",
+     "docs/scan.md summary.json: null for the galvo models"),
+    (r"^(indents|sizes)\.csv$", r"^(row|col|dx_um|dy_um|depth_nm|hd_ratio|pileup_nm|pileup_volume_um3|apex_depth_nm|"
+                                 r"area_um2|edge_bow|hv|mean_hd|sd_hd|mean_depth_nm)$",
+     "docs/indents.md indents.csv: row/col/dx/dy empty without a spec; heights (depth, H/D, pile-up, apex depth, "
+     "area, edge bow) empty for OM; area NaN when cut; hv empty without a load"),
+    (r"^summary\.json$", r"^(mean_depth_nm|mean_hd|mean_pileup_nm|mean_apex_depth_nm|mean_area_um2|noise_nm|tilt_deg|"
+                          r"mean_hv|load_mN)$",
+     "docs/indents.md summary.json: the height figures are empty for OM; hv and the load without a load"),
+)
+
+
+def _allowed_empty(fname: str, key: str) -> bool:
+    return any(re.search(f, fname) and re.search(k, key) for f, k, _ in ALLOWED_EMPTY)
+
+
+def _row_allows(row: dict, key: str, key_columns: dict | None) -> bool:
+    """A batch index row may leave empty the key figures of other flows, and its own when it failed to process
+    (docs/batch.md: "then the key figures of the flows present"; status ``error``)."""
+    if key_columns is None or "flow" not in row:
+        return False
+    all_keys = set().union(*key_columns.values())
+    own = set(key_columns.get(row["flow"], ()))
+    return key in all_keys and (key not in own or row.get("status") == "error")
+
+
+def _json_nulls(obj, prefix="", parent=None):
+    """(key, path, the dict holding it) of every null in a parsed JSON document."""
+    if obj is None:
+        yield prefix.rsplit(".", 1)[-1], prefix, parent
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            yield from _json_nulls(v, f"{prefix}.{k}" if prefix else str(k), obj)
+    elif isinstance(obj, list):
+        for i, v in enumerate(obj):
+            yield from _json_nulls(v, f"{prefix}[{i}]", parent)
+
+
+def scan_outputs(folder, key_columns: dict | None = None) -> list:
+    """Every problem in the text outputs under ``folder``: nan/inf tokens, numbers beyond ±1e15, and empty CSV
+    cells or JSON nulls where :data:`ALLOWED_EMPTY` does not allow them.
+
+    ``key_columns`` (flow -> its key-figure columns; default: every registered flow's) lets a row of the batch
+    index (summary.csv, summary.json ``rows``) leave other flows' key figures empty, and its own when it failed.
+    """
+    import csv
+    import io
+    import json
+    if key_columns is None:
+        from markcal.pipeline.registry import all_flows
+        key_columns = {n: f.descriptor.key_names for n, f in all_flows().items()}
+    bad = []
+    for root, _, files in os.walk(folder):
+        for f in files:
+            if not f.endswith((".csv", ".json", ".txt", ".cal")):
+                continue
+            p = os.path.join(root, f)
+            with open(p, "rb") as fh:
+                data = fh.read()
+            if f.endswith(".json"):
+                try:
+                    doc = json.loads(data, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+                except ValueError as exc:
+                    bad.append(f"{p}: {exc}")
+                    doc = None
+                bad += [f"{p}: null at {where}" for key, where, holder in _json_nulls(doc)
+                        if not _allowed_empty(f, key) and not _row_allows(holder or {}, key, key_columns)]
+            if f.endswith(".csv"):
+                rows = list(csv.reader(io.StringIO(data.decode("utf-8", "replace"))))
+                head = rows[0] if rows else []
+                for r in rows[1:]:
+                    row = dict(zip(head, r))
+                    for k, v in row.items():
+                        if v == "" and not _allowed_empty(f, k) and not _row_allows(row, k, key_columns):
+                            msg = f"{p}: empty {k}"
+                            if msg not in bad:
+                                bad.append(msg)
+            m = NONFINITE.search(data)
+            if m:
+                bad.append(f"{p}: {m.group(0)!r}")
+            for tok in NUMBER.findall(data):
+                if abs(float(tok)) > 1e15:
+                    bad.append(f"{p}: {tok!r}")
+                    break
+    return bad
+
+
+def grid_result(folder, seed: int = 3):
+    """A grid flow result folder (render a measured grid, run ``markcal grid`` on it): a source for export."""
+    from markcal.pipeline.cli import main
+    folder = os.fspath(folder)
+    assert main(["render", "grid", "--seed", str(seed), "--out", os.path.join(folder, "m"), "--quiet"]) == 0
+    assert main(["grid", os.path.join(folder, "m", "measured.csv"), "--out", os.path.join(folder, "cal"), "--quiet",
+                 "--no-report"]) in (0, 4)
+    return os.path.join(folder, "cal")

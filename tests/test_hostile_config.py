@@ -77,3 +77,22 @@ def test_batch_nan_option_refused(tmp_path, capsys):
     assert main(["batch", str(d), "--out", str(tmp_path / "o"), "--config", str(cfg), "--quiet"]) == 1
     err = _err(capsys)
     assert len(err) == 1 and "finite number" in err[0] and str(cfg) in err[0], err
+
+
+def test_every_flow_with_options_checks_them():
+    """Each flow with options beyond no_report declares its validate_options (batch.toml is checked up front)."""
+    from markcal.pipeline.registry import all_flows
+    for name, f in all_flows().items():
+        d = f.descriptor
+        assert (d.validate_options is not None) == bool(set(d.options) - {"no_report"}), name
+        d.check_options({})                                  # the defaults pass their own checks
+
+
+def test_negative_seed_refused_for_every_flow_with_a_seed():
+    from markcal.pipeline.registry import all_flows
+    from markcal.stages.errors import MarkcalError
+    seeded = [f.descriptor for f in all_flows().values() if "seed" in f.descriptor.options]
+    assert {d.name for d in seeded} >= {"scan", "grid", "path", "pmcal"}
+    for d in seeded:
+        with pytest.raises(MarkcalError, match="seed must be a whole number"):
+            d.check_options({"seed": -1})

@@ -3,10 +3,12 @@ the file, exit 1, nothing written, under 5 CPU s and 1 GiB, each run in a limite
 from __future__ import annotations
 
 import os
+import pathlib
 
 import numpy as np
 import pytest
 
+import hostile_run
 from hostile_run import assert_refused, listing, run
 
 PLATE = "[grid]\nrows = 7\ncols = 7\npitch_mm = 10.0\n"
@@ -197,11 +199,7 @@ def test_tiff_decompression_bomb(tmp_path):
 
 @pytest.fixture(scope="module")
 def grid_result(tmp_path_factory):
-    from markcal.pipeline.cli import main
-    d = tmp_path_factory.mktemp("gr")
-    assert main(["render", "grid", "--seed", "3", "--out", str(d / "m"), "--quiet"]) == 0
-    assert main(["grid", str(d / "m" / "measured.csv"), "--out", str(d / "cal"), "--quiet", "--no-report"]) in (0, 4)
-    return d / "cal"
+    return pathlib.Path(hostile_run.grid_result(tmp_path_factory.mktemp("gr"), seed=3))
 
 
 def test_export_out_is_a_folder(grid_result, tmp_path):

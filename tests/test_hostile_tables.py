@@ -9,7 +9,7 @@ import shutil
 import numpy as np
 import pytest
 
-from hostile_run import assert_refused, listing, run
+from hostile_run import assert_refused, listing, run, scan_outputs
 from markcal.pipeline.cli import main
 
 
@@ -239,6 +239,7 @@ def test_servo_trace_non_utf8_name(tmp_path):
         assert o.code in (0, 4), o.err
         s = json.loads((out / "summary.json").read_text())
         assert all((out / f).exists() for f in s["outputs"])
+        assert scan_outputs(out) == []
 
 
 @pytest.mark.parametrize("kind", ["component", "path"])

@@ -11,6 +11,8 @@ import os
 from dataclasses import dataclass, field
 from typing import Callable
 
+from markcal.stages.errors import MarkcalError
+
 
 @dataclass(frozen=True)
 class Figure:
@@ -60,6 +62,10 @@ class FlowDescriptor:
         Key figures plotted across inputs in the batch index (the first is the "main figure").
     cost : float
         Rough relative run time per input (the batch starts the longest first).
+    validate_options : callable, optional
+        ``validate_options(options) -> None``: raises a MarkcalError naming the option
+        when a value is bad (the flow's own option parsing; ``options`` holds every key).
+        The batch calls it on every flow's batch.toml section before any work.
     """
 
     name: str
@@ -75,6 +81,7 @@ class FlowDescriptor:
     tolerances_by_kind: dict = field(default_factory=dict)
     trends: tuple = ()
     cost: float = 1.0
+    validate_options: Callable | None = None
 
     def find_spec(self, path):
         """The input's spec file: ``<stem>.toml`` beside it, else :attr:`spec_name` in its folder, else None."""
@@ -83,6 +90,20 @@ class FlowDescriptor:
     def default_tolerances(self, summary: dict) -> dict:
         """The default limits for this summary: :attr:`tolerances_by_kind` of its ``kind``, else :attr:`tolerances`."""
         return dict(self.tolerances_by_kind.get(summary.get("kind"), self.tolerances))
+
+    def check_options(self, options: dict) -> dict:
+        """``options`` over the defaults, refusing unknown names and bad values; returns the full dict."""
+        opts = dict(self.options)
+        for k, v in options.items():
+            if k not in opts:
+                raise MarkcalError(f"unknown option '{k}' of the {self.name} flow (known: {', '.join(opts)})")
+            opts[k] = v
+        seed = opts.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2 ** 32:
+            raise MarkcalError(f"seed must be a whole number from 0 to 2**32 - 1 (got {seed!r})")
+        if self.validate_options is not None:
+            self.validate_options(opts)
+        return opts
 
     @property
     def key_names(self) -> tuple:

@@ -7,7 +7,6 @@ Sources are output folders of the scan flow (galvo: ``model.json``,
 """
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 
@@ -87,8 +86,10 @@ def load_scan_source(folder) -> ScanSource:
     model, region = _load_galvo_model(_need(folder, "model.json", "scan flow"))
     f = read_table(_need(folder, "fiducials.csv", "scan flow"),
                    ("row", "col", "x_nom_mm", "y_nom_mm", "x_meas_mm", "y_meas_mm"), int_columns=("row", "col"))
-    with open(_need(folder, "summary.json", "scan flow"), encoding="utf-8") as fh:
-        summary = json.load(fh)
+    spath = _need(folder, "summary.json", "scan flow")
+    summary = load_json(spath, "summary file")
+    if not isinstance(summary, dict) or summary.get("kind", "calibration") not in ("calibration", "validation"):
+        raise MarkcalError("not a scan or grid result summary (its kind must be calibration or validation)", spath)
     region = region or (float(f["x_nom_mm"].min()), float(f["x_nom_mm"].max()),
                         float(f["y_nom_mm"].min()), float(f["y_nom_mm"].max()))
     missing = summary.get("missing_ids")

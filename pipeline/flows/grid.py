@@ -28,6 +28,10 @@ from markcal.stages.register import Rigid2D, rigid_or_mirrored_fit
 MAX_RESIDUAL_PITCH = 1.0 / 3.0
 
 
+#: the most correction nodes over the lens field (``--grid-step-mm`` floor)
+MAX_NODES = 1_000_000
+
+
 @dataclass(frozen=True)
 class GridOptions:
     """Settings of the grid flow. Lengths mm; None: derived from the input."""
@@ -41,6 +45,20 @@ class GridOptions:
     grid_step_mm: float | None = None
     folds: int = 5
     seed: int = 0
+
+    def __post_init__(self):
+        if self.model != "auto" and self.model not in KINDS:
+            raise MarkcalError(f"unknown model {self.model!r} (known: {', '.join(KINDS)}, auto)")
+        if self.folds < 2:
+            raise MarkcalError(f"--folds must be at least 2 (got {self.folds})")
+        if not np.isfinite(self.centre_units):
+            raise MarkcalError(f"--centre-units must be finite (got {self.centre_units})")
+        for k in ("units_per_mm", "lens_mm", "d_mm", "grid_step_mm"):
+            v = getattr(self, k)
+            if v is not None and not 0 < v <= 1e6:
+                raise MarkcalError(f"--{k.replace('_', '-')} must be positive and at most 1e6 (got {v})")
+        if self.e_mm is not None and not 0 <= self.e_mm <= 1e6:
+            raise MarkcalError(f"--e-mm must be >= 0 and at most 1e6 (got {self.e_mm})")
 
 
 @dataclass(frozen=True)
@@ -112,16 +130,12 @@ def run_grid(path, options: GridOptions | None = None, progress=None) -> GridRes
 
 
 def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResult:
-    if opt.folds < 2:
-        raise MarkcalError(f"--folds must be at least 2 (got {opt.folds})")
     folds = min(opt.folds, len(grid.cmd_mm) // 2)       # a small grid: fewer folds, at least two marks in each
     cmd = grid.cmd_mm
     dist, _ = cKDTree(cmd).query(cmd, k=2)
     pitch = float(np.median(dist[:, 1]))
     span = float(np.max(cmd.max(axis=0) - cmd.min(axis=0)))
     if opt.lens_mm is not None:
-        if not opt.lens_mm > 0:
-            raise MarkcalError(f"--lens-mm must be positive (got {opt.lens_mm})")
         lens = float(opt.lens_mm)
     elif grid.units_per_mm:
         lens = 65536.0 / grid.units_per_mm
@@ -150,8 +164,9 @@ def _run(grid: MeasuredGrid, source: str, opt: GridOptions, say, t0) -> GridResu
 
     say("correction over the lens field")
     step = opt.grid_step_mm if opt.grid_step_mm else lens / 50.0
-    if not step > 0:
-        raise MarkcalError(f"--grid-step-mm must be positive (got {step})")
+    if (lens / step + 1) ** 2 > MAX_NODES:
+        raise MarkcalError(f"--grid-step-mm {step:g} gives {(lens / step + 1) ** 2:.3g} correction nodes over the "
+                           f"{lens:g} mm lens field; at most {MAX_NODES:,} (a coarser step)")
     nodes = grid_nodes(lens / 2, lens / 2, step)
     dxy = model(nodes)
     hull = hull_distance_mm(nodes, cmd)
@@ -228,6 +243,7 @@ FLOW = FlowDescriptor(
     name="grid", help="hand-measured galvo grid -> physical model, correction over the lens field, report",
     claims=_claims,
     run=lambda path, spec, options, progress=None: run_grid(path, grid_options(options), progress=progress),
+    validate_options=grid_options,
     options={"model": "physical+rbf", "units_per_mm": 0.0, "centre_units": 32768.0, "lens_mm": 0.0, "d_mm": 0.0,
              "e_mm": 0.0, "grid_step_mm": 0.0, "folds": 5, "seed": 0, "no_report": False},
     key_figures=(Figure("n_marks", "marks"), Figure("rms_mm", "grid deviation RMS", "mm"),

@@ -328,7 +328,12 @@ def _claims(path) -> bool:
 
 
 def indents_options(o: dict) -> IndentsOptions:
-    """:class:`IndentsOptions` from the descriptor's option dict ("" and 0 mean "from the file")."""
+    """:class:`IndentsOptions` from the descriptor's option dict ("" and 0 mean "from the file"); checks the values."""
+    if o["kind"] not in ("", "afm", "om"):
+        raise MarkcalError(f"kind must be afm or om (got {o['kind']!r})")
+    for k in ("pixel_size_um", "load_mN"):
+        if not 0 <= o[k] <= 1e6:
+            raise MarkcalError(f"{k} must be positive and at most 1e6 (0: from the file) (got {o[k]!r})")
     return IndentsOptions(kind=o["kind"] or None, pixel_size_um=o["pixel_size_um"] or None,
                           channel=o["channel"] or None, load_mN=o["load_mN"] or None)
 
@@ -367,7 +372,7 @@ def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
 
 FLOW = FlowDescriptor(
     name="indents", help="micro-indentation arrays and imprints from AFM height maps and micrographs",
-    claims=_claims, run=_run_descriptor, spec_name="array.toml",
+    claims=_claims, run=_run_descriptor, spec_name="array.toml", validate_options=indents_options,
     options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "no_report": False},
     key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
                  Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),

@@ -399,11 +399,17 @@ def _claims(path) -> bool:
     return isinstance(d, dict) and "strokes" in d
 
 
+#: caps of the GA (its iteration cap: generations; population x strokes is its memory)
+MAX_GENERATIONS = 1_000_000
+MAX_POPULATION = 10_000
+
+
 def path_options(o: dict) -> PathOptions:
     """:class:`PathOptions` from the descriptor's option dict (CLI or batch.toml); checks the values."""
-    for k in ("generations", "population", "ga_max_strokes"):
-        if o[k] < 1:
-            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1")
+    _method(o["method"])
+    for k, most in (("generations", MAX_GENERATIONS), ("population", MAX_POPULATION), ("ga_max_strokes", 100_000)):
+        if not 1 <= o[k] <= most:
+            raise MarkcalError(f"--{k.replace('_', '-')} must be at least 1 and at most {most:,} (got {o[k]})")
     if not o["kicks_per_stroke"] >= 0:
         raise MarkcalError("--kicks-per-stroke must be >= 0")
     timing = Timing(metric=o["metric"], jump_speed_mm_s=o["jump_speed_mm_s"], settle_s=o["settle_us"] * 1e-6,
@@ -419,6 +425,7 @@ FLOW = FlowDescriptor(
     name="path", help="marking job -> marking order with short jumps (GA, local search), report",
     claims=_claims,
     run=lambda path, spec, options, progress=None: run_path(path, path_options(options), progress=progress),
+    validate_options=path_options,
     options={"method": "auto", "seed": 0, "tolerance_mm": 0.01, "keep_layer_order": False, "metric": "distance",
              "jump_speed_mm_s": 3000.0, "settle_us": 200.0, "mark_speed_mm_s": 1000.0, "dwell_us": 500.0,
              "generations": 3000, "population": 100, "ga_max_strokes": 500,

@@ -292,11 +292,16 @@ def _read_truth(folder):
         raise MarkcalError(f"cannot read truth ({exc})", p) from None
 
 
+def check_pmcal_options(options: dict) -> None:
+    """Refuse an unknown ``method`` (the flow's options, CLI or batch.toml)."""
+    if options["method"] not in METHODS:
+        raise MarkcalError(f"unknown method {options['method']!r} (choose from {', '.join(METHODS)})")
+
+
 def run_pmcal(folder, method: str = "ga+lsq", seed: int = 0, progress=None) -> PmcalResult:
     """Calibrate from a session folder with all three methods; ``method`` is the one returned as chosen."""
     say = progress or (lambda msg: None)
-    if method not in METHODS:
-        raise MarkcalError(f"unknown method {method!r} (choose from {', '.join(METHODS)})")
+    check_pmcal_options({"method": method})
     folder = os.fspath(folder)
     data, warnings, (pose_path, pose_lines) = read_session(folder)
     truth, true_model = _read_truth(folder)
@@ -381,7 +386,7 @@ FLOW = FlowDescriptor(
     claims=_claims, folder=True,
     run=lambda path, spec, options, progress=None: run_pmcal(path, method=options["method"],
                                                              seed=int(options["seed"]), progress=progress),
-    options={"method": "ga+lsq", "seed": 0, "no_report": False},
+    options={"method": "ga+lsq", "seed": 0, "no_report": False}, validate_options=check_pmcal_options,
     key_figures=(Figure("F", "fitness F (eq. 9)"), Figure("axes_rms_um", "axis residual RMS", "µm"),
                  Figure("pose_rms_um", "pmcal pose residual RMS", "µm"),
                  Figure("nonorth_xy_urad", "non-orthogonality xy", "µrad"),

@@ -452,6 +452,8 @@ def scan_options(options: dict) -> ScanOptions:
     hint = None if hint is None or not np.isfinite(float(hint)) else float(hint)     # NaN: no hint
     px = options.get("pixel_size_mm")
     px = None if px is None or not np.isfinite(float(px)) else float(px)              # NaN: from the file
+    if px is not None and not 0 < px <= 10.0:
+        raise MarkcalError(f"pixel_size_mm must be in (0, 10] mm (got {px:g})")
     view = str(options.get("view", "auto"))
     if view not in VIEWS:
         raise MarkcalError(f"unknown view {view!r} (known: {', '.join(VIEWS)})")
@@ -471,7 +473,7 @@ def _run_descriptor(path, spec_path, options, progress=None) -> ScanResult:
 
 FLOW = FlowDescriptor(
     name="scan", help="3D scan or flatbed image of a galvo-marked plate -> deviations, correction, report",
-    claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True,
+    claims=_claims, run=_run_descriptor, spec_name="plate.toml", needs_spec=True, validate_options=scan_options,
     options={"seed": 0, "purpose": "", "validation": False, "no_report": False, "model": "ols-rbf",
              "rotation_hint_deg": float("nan"), "orientation": "auto", "mirror": "no",
              "pixel_size_mm": float("nan"), "view": "auto"},

@@ -26,7 +26,7 @@ from markcal.stages.servo_reading import (NAMED_READINGS, baseline_rows, referen
 from markcal.stages.servo_control import RepetitiveParams, StabilityCheck
 from markcal.stages.servo_plant import discretise
 from markcal.stages.servo_profile import s_curve, sinusoid
-from markcal.stages.servo_log import (DriveLog, Moves, SineMetrics, check_log, find_moves, move_metrics,
+from markcal.stages.servo_log import (DriveLog, Moves, SineMetrics, check_log, check_log_units, find_moves, move_metrics,
                                      guess_columns, move_statistics, read_log, sine_metrics, sniff_layout)
 from markcal.stages.servo_sim import (BASELINE, CCA_STEP, CCA_TRACK, SimResult, simulate, step_metrics,
                                       tracking_metrics)
@@ -235,6 +235,15 @@ def _band(options) -> tuple:
     return um, None
 
 
+def check_trace_options(options: dict) -> None:
+    """Refuse bad drive-log options (settle band, units, counts per mm, empty column names)."""
+    _band(options)
+    check_log_units(options["time_unit"], options["pos_unit"], float(options["counts_per_mm"]))
+    for k in ("time_col", "ref_col", "pos_col"):
+        if not str(options[k]).strip():
+            raise MarkcalError(f"{k} must name a column (got an empty name)")
+
+
 def run_servo_trace(path, options: dict | None = None, progress=None) -> ServoResult:
     """Metrics of a measured drive log: per move (and statistics over them), or sinusoidal tracking."""
     say = progress or (lambda msg: None)
@@ -314,7 +323,7 @@ def _run_trace(path, spec, options, progress=None) -> ServoResult:
 FLOW = FlowDescriptor(
     name="servo", help="macro-stage servo: composite controller vs baseline, or a measured drive log",
     claims=_claims, run=_run_trace,
-    options=dict(TRACE_OPTIONS),
+    options=dict(TRACE_OPTIONS), validate_options=check_trace_options,
     key_figures=(Figure("trace_kind", "trace kind"), Figure("mae_um", "servo mean absolute tracking error", "µm"),
                  Figure("std_um", "tracking error STD", "µm"), Figure("settling_time_s", "settling time (worst move)", "s"),
                  Figure("overshoot_um", "overshoot (worst move)", "µm"), Figure("n_moves", "moves"),
