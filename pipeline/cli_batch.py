@@ -3,7 +3,13 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 import time
+
+#: seconds without a line before the batch says it is still working; then twice as long each time, up to
+#: ``HEARTBEAT_MAX_S`` (a long batch logged to a file gets a line every 30 s, not every 2 s)
+HEARTBEAT_S = 1.5
+HEARTBEAT_MAX_S = 30.0
 
 
 class BatchProgress:
@@ -16,23 +22,46 @@ class BatchProgress:
         self.t0 = time.perf_counter()
         self.total = self.todo = self.reused = 0
         self._bar_shown = False
+        self._lock = threading.Lock()
+        self._last = self.t0                  # when the last line was printed
+        self._gap = HEARTBEAT_S
+        self._running = 0
+        self._stop = threading.Event()
+        self._beat = None
 
-    def _line(self, msg: str) -> None:
+    def _line(self, msg: str, beat: bool = False) -> None:
         if self.quiet:
             return
-        if self._bar_shown:
-            self.stream.write("\r\033[K")
-            self._bar_shown = False
-        print(f"[{time.perf_counter() - self.t0:7.1f} s] {msg}", file=self.stream, flush=True)
+        with self._lock:
+            if self._bar_shown:
+                self.stream.write("\r\033[K")
+                self._bar_shown = False
+            print(f"[{time.perf_counter() - self.t0:7.1f} s] {msg}", file=self.stream, flush=True)
+            self._last = time.perf_counter()
+            self._gap = min(2 * self._gap, HEARTBEAT_MAX_S) if beat else HEARTBEAT_S
+
+    def _heartbeat(self) -> None:
+        """While inputs run (or the index is written): a line when none came for a while."""
+        while not self._stop.wait(0.25):
+            if time.perf_counter() - self._last >= self._gap:
+                left = self._running
+                self._line(f"working: {left} input{'s' if left != 1 else ''} left, "
+                           f"{time.perf_counter() - self._last:.0f} s since the last line" if left else
+                           "writing the batch index", beat=True)
 
     def start(self, total, todo, reused, ignored) -> None:
         self.total, self.todo, self.reused = total, todo, reused
+        self._running = todo
         self.t_work = time.perf_counter()
+        if not self.quiet and self._beat is None:
+            self._beat = threading.Thread(target=self._heartbeat, name="markcal-batch-heartbeat", daemon=True)
+            self._beat.start()
         self._line(f"{total} inputs: {todo} to process, {reused} already done (outputs up to date)"
                    + (f"; {len(ignored)} files not recognised: {', '.join(ignored[:5])}"
                       + (" ..." if len(ignored) > 5 else "") if ignored else ""))
 
     def update(self, rec, done, failed, left) -> None:
+        self._running = left
         if self.quiet:
             return
         ran = done - self.reused
@@ -53,10 +82,14 @@ class BatchProgress:
                               f"{left} left, {rate:.2f}/s, ETA {eta_s}")
             self.stream.flush()
             self._bar_shown = True
+            self._last = time.perf_counter()
         elif left == 0 or done % 10 == 0:
             self._line(f"progress: {done} done, {failed} failed, {left} left, {rate:.2f} inputs/s, ETA {eta_s}")
 
     def finish(self, msg: str) -> None:
+        self._stop.set()
+        if self._beat is not None:
+            self._beat.join()
         if self._bar_shown and not self.quiet:
             self.stream.write("\n")
             self._bar_shown = False
@@ -90,7 +123,7 @@ def cmd_render_batch(args) -> int:
                       n_afm=args.maps, n_om=args.micrographs)
     say(f"rendering a mixed batch: {args.scans} plates, {args.sessions} selfcal sessions, {args.traces} traces, "
         f"{args.maps} AFM maps, {args.micrographs} micrographs, {args.broken} broken, seed {args.seed}")
-    render_batch_mix(args.out, args.seed, opts)
+    render_batch_mix(args.out, args.seed, opts, say=say)
     print(os.path.abspath(args.out))
     return 0
 

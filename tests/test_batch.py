@@ -184,6 +184,29 @@ def test_progress_bar_and_log_lines():
             assert "\r" not in text and "1/2 pass" in text
 
 
+def test_progress_heartbeat_while_inputs_run(monkeypatch):
+    # a batch whose inputs each take long must not go silent (issue 16): a line when none came for a while,
+    # the wait doubling each time; none after finish()
+    import markcal.pipeline.cli_batch as cb
+    monkeypatch.setattr(cb, "HEARTBEAT_S", 0.1)
+    buf = io.StringIO()
+    p = BatchProgress(buf, tty=False)
+    p.start(3, 3, 0, [])
+    time.sleep(0.9)                              # beats after about 0.1, 0.3 and 0.7 s
+    p.finish("end")
+    beats = [ln for ln in buf.getvalue().splitlines() if "working: 3 inputs left" in ln]
+    assert 2 <= len(beats) <= 4
+    n = len(buf.getvalue())
+    time.sleep(0.3)
+    assert len(buf.getvalue()) == n and buf.getvalue().rstrip().endswith("end")
+    quiet = io.StringIO()
+    q = BatchProgress(quiet, quiet=True, tty=False)
+    q.start(1, 1, 0, [])
+    time.sleep(0.3)
+    q.finish("end")
+    assert quiet.getvalue() == ""
+
+
 def test_dask_local_cluster_same_records(mix, tmp_path):
     distributed = pytest.importorskip("dask.distributed")
     d = _traces_only(mix, tmp_path)
