@@ -140,6 +140,10 @@ ALLOWED_EMPTY = (
      "docs/batch.md 'Outputs in OUT_DIR': reason (for errors), failed_checks/checks (limits applied), "
      "spec and report ('' if none), group ('' at the top)"),
     (r"^summary\.(csv|json)$", r"^runtime_s$", "docs/batch.md: runtime_s empty when reused"),
+    (r"^summary\.(csv|json)$", r"^data_time$", "docs/batch.md: data_time \"\" when the file carries no timestamp"),
+    (r"^summary\.(csv|json)$", r"^(n_low_hd|n_out_of_tolerance)$",
+     "docs/indents.md summary.json: n_low_hd null without depths (micrographs), n_out_of_tolerance null "
+     "without an array spec (no verdict on an inferred nominal)"),
     (r"^(summary\.(csv|json)|metrics\.csv|moves\.csv)$", r"^(settling_time_s|rise_time_s)$",
      "docs/servo.md summary.json and moves.csv: settling empty when a move never settles"),
     (r"^summary\.json$", r"^(settling_time|rise_time)_\w+$", "docs/servo.md: statistics over the settled moves"),
