@@ -391,6 +391,7 @@ def verdict_banner(summary: dict) -> str:
     cls = {"pass": "pass", "fail": "fail"}.get(status, "none")
     rows = _check_rows(summary)
     checks = table(["figure", "value", "limit", ""], rows) if rows else \
+        f"<span>{esc(summary['verdict_note'])}</span>" if summary.get("verdict_note") else \
         "<span>no tolerance given: <code>--tol KEY&lt;=VALUE</code> or the spec's / batch.toml's limits</span>"
     return (f'<div class="banner {cls}" id="verdict"><span class="big">{esc(status.upper())}</span>{checks}</div>'
             + provenance_line(summary))

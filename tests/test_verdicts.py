@@ -122,3 +122,18 @@ def test_no_applicable_limit_is_no_tolerance_not_pass():
     assert (v.status, v.checks, v.failed) == ("no tolerance", "overshoot_um <= 6", "")
     assert evaluate(s, {"max_overshoot_um": 6.0, "max_mae_um": 0.2}).status == "fail"
     assert evaluate(s, {"max_mae_um": 0.5, "max_overshoot_um": 6.0}).checks == "mae_um <= 0.5; overshoot_um <= 6"
+
+
+def test_servo_simulation_report_opens_with_no_tolerance_and_says_why(tmp_path):
+    # every report's first screen carries a verdict (issue 16); the simulation is compared with the paper
+    from markcal.reports.html import verdict_banner
+    out = tmp_path / "sim"
+    cfg = tmp_path / "servo.toml"
+    cfg.write_text("[step]\nstrokes_mm = [10.0]\n[sine]\namplitudes_mm = [10.0]\nfrequencies_hz = [2.0]\n")
+    assert main(["servo", str(cfg), "--out", str(out), "--quiet"]) == 0
+    s = json.load(open(out / "summary.json"))
+    assert s["verdict"] == "no tolerance" and "compared with the paper" in s["verdict_note"]
+    html = (out / "report.html").read_text()
+    assert 'id="verdict"><span class="big">NO TOLERANCE</span>' in html and "not judged against a tolerance" in html
+    banner = verdict_banner({"verdict": "no tolerance", "verdict_note": "x < y"})
+    assert "x &lt; y" in banner and "--tol" not in banner
