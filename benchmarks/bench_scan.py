@@ -13,8 +13,8 @@ codes are compared with benchmarks/compare_outputs.py.
 
     python benchmarks/bench_scan.py [--runs 3] [--ref 5f2c370] [--cloud PLY --plate TOML]
 
-``MARKCAL_REPORT_FORK=1 python benchmarks/bench_scan.py`` times this code with half of the report's
-figures drawn in a forked process when a core is free (load below the core count; off by default).
+This code draws half of the report's figures in a forked process when a core is free (load below the
+core count); ``MARKCAL_REPORT_FORK=0 python benchmarks/bench_scan.py`` times it without.
 """
 from __future__ import annotations
 

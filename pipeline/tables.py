@@ -126,8 +126,8 @@ def read_table(path, columns, int_columns=(), key=None) -> dict:
         raise MarkcalError(f"not a UTF-8 text file (byte {exc.start})", path) from None
     except (OSError, csv.Error) as exc:
         raise MarkcalError(f"cannot read as CSV ({exc})", path) from None
-    rows = [r for _, r in lines if r and any(c.strip() for c in r)]
-    line_of = [i for i, r in lines if r and any(c.strip() for c in r)]
+    kept = [(i, r) for i, r in lines if r and any(c.strip() for c in r)]
+    line_of, rows = [i for i, _ in kept], [r for _, r in kept]
     if not rows:
         raise MarkcalError("empty file", path)
     header = [h.strip() for h in rows[0]]
@@ -137,20 +137,21 @@ def read_table(path, columns, int_columns=(), key=None) -> dict:
     if len(rows) < 2:
         raise MarkcalError("no data rows", path)
     idx = {c: header.index(c) for c in columns}
+    limit = {c: max_abs_for(c) for c in columns}
     out = {c: np.empty(len(rows) - 1, np.int64 if c in int_columns else np.float64) for c in columns}
     for i, r in enumerate(rows[1:]):
         line = line_of[i + 1]
         if len(r) != len(header):
             raise MarkcalError(f"line {line}: {len(r)} fields, the header has {len(header)}", path)
         for c, j in idx.items():
-            cell = r[j].strip() if j < len(r) else ""
+            cell = r[j].strip()
             try:
                 v = float(cell)
             except ValueError:
                 raise MarkcalError(f"line {line}: {c} = {cell!r} is not a number", path) from None
             if not np.isfinite(v):
                 raise MarkcalError(f"line {line}: {c} is {cell or 'empty'}", path)
-            if abs(v) > max_abs_for(c):
+            if abs(v) > limit[c]:
                 check_values([v], c, path, line)
             if c in int_columns and v != int(v):
                 raise MarkcalError(f"line {line}: {c} = {cell!r} is not an integer", path)

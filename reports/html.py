@@ -352,7 +352,7 @@ def _check_rows(summary: dict) -> list:
         key, op, lim = parts
         v = summary.get(key)
         bad = any(f.split(" ")[0] == key for f in failed.split("; ") if f)
-        na = v is None or isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)
+        na = isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v)
         val = "–" if na else f"{v:.4g}"
         rows.append([esc(label if label and label != key else key) + (f" <code>{esc(key)}</code>" if label and label != key else ""), val, f"{'≤' if op == '<=' else '≥'} {esc(lim)}",
                      '<b style="color:#d9342b">out</b>' if bad else ("not applicable" if na else "ok")])

@@ -36,11 +36,6 @@ DATA_FILES = (
 )
 AREA_LABELS = {"full": "full field", "inner_150": "inner 150 × 150 mm", "inner_50": "inner 50 × 50 mm"}
 
-def _arrow_scale(max_len_mm: float, pitch_mm: float) -> float:
-    """Magnification making the longest arrow about ⅓ of a pitch."""
-    return arrow_scale(pitch_mm, max_len_mm)
-
-
 def _rowcol(fid_id: int, cols: int) -> tuple:
     return divmod(int(fid_id), int(cols))
 
@@ -115,7 +110,7 @@ def _quiver_figure(result) -> str:
     dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
     mag = np.hypot(dx, dy)
     mmax = float(mag.max()) if len(mag) else 0.0
-    k = _arrow_scale(mmax, spec.pitch_mm)
+    k = arrow_scale(spec.pitch_mm, mmax)
     big = max(spec.rows, spec.cols) > 11                   # a 19 x 19 plate: a larger plot, smaller circles
     fig = new_figure(10.0, 8.8) if big else new_figure(7.6, 6.6)
     ax = fig.add_subplot(111)
@@ -152,7 +147,6 @@ def _bins(v: np.ndarray) -> int:
 
 
 def _histogram_figures(result) -> str:
-    from matplotlib.ticker import MaxNLocator
     f = result.fiducials
     dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
     mag = np.hypot(dx, dy)

@@ -24,6 +24,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.special import expit
 
+from .errors import MarkcalError
 from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
@@ -188,15 +189,16 @@ class _QuadModel:
         s, lw = self.soft, self.line_px
         e = [-sgn * _lines(c[k], c[(k + 1) % 4], X, Y) for k in range(4)]    # inside: positive
         r = [sgn * _lines(apex, c[k], X, Y) for k in range(4)]                # k+1's side: negative
+        half = expit(np.array(e) / s)                                          # the four soft half-planes
         w, edge_line, glow = [], 0.0, 0.0
         for k in range(4):
             wedge = expit(-r[k] / s) * expit(r[(k + 1) % 4] / s)
-            w.append(expit(e[k] / s) * wedge)
+            w.append(half[k] * wedge)
             edge_line = edge_line + np.exp(-0.5 * (e[k] / lw) ** 2) * wedge
             glow = glow + np.exp(-np.abs(e[k]) / (3 * lw)) * wedge
         # inside the blurred quadrilateral: the product of its four soft half-planes (a blurred
         # corner holds a quarter of the contrast at its tip, not half as a sum over wedges gives)
-        inside = np.prod(expit(np.array(e) / s), axis=0)
+        inside = np.prod(half, axis=0)
         w = np.array(w)
         w = w / (w.sum(axis=0) + 1e-12) * inside
         out = np.clip(1.0 - inside, 0.0, 1.0)

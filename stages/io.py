@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import MarkcalError
-from .limits import check_budget, check_text_ends, max_abs_for
+from .limits import check_budget, check_file_ends, max_abs_for
 
 INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "scalar_reflectance", "i",
                    "backscatter", "scalar_backscatter", "gray", "grey")
@@ -182,8 +182,7 @@ def _read_pcd(path):
 BYTES_PER_POINT = 160
 #: bytes a row of a PLY list property costs in plyfile (an object array of a small array per row)
 BYTES_PER_LIST_ROW = 120
-_PLY_SIZES = {"char": 1, "int8": 1, "uchar": 1, "uint8": 1, "short": 2, "int16": 2, "ushort": 2, "uint16": 2,
-              "int": 4, "int32": 4, "uint": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+_PLY_SIZES = {name: np.dtype(code).itemsize for name, code in _PLY_DTYPES.items()}
 
 
 def _header_lines(path, end: bytes, what: str) -> tuple:
@@ -278,8 +277,7 @@ def _read_npy(path):
 
 
 def _read_text(path):
-    with open(path, "rb") as fh:
-        check_text_ends(fh.read())
+    check_file_ends(path)
     with open(path, encoding="utf-8", errors="replace") as fh:
         first = fh.readline()
     delim = "," if "," in first else None

@@ -231,7 +231,6 @@ class ViewGeometry:
 
     keystone: float
     perspective_mm: float
-    n_marks: int
 
 
 def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -270,7 +269,7 @@ def view_geometry(uv_mm: np.ndarray, pitch_mm: float) -> ViewGeometry:
     src = lat.k[lat.good] * pitch_mm
     dst = np.asarray(uv_mm, float)[lat.good]
     if len(src) < 8 or np.linalg.matrix_rank(src - src.mean(axis=0)) < 2:
-        return ViewGeometry(0.0, 0.0, int(len(src)))
+        return ViewGeometry(0.0, 0.0)
     return perspective_of(src, dst)
 
 
@@ -285,7 +284,7 @@ def perspective_of(src_mm: np.ndarray, dst_mm: np.ndarray) -> ViewGeometry:
     keystone = max(abs(edge[0] / edge[2] - 1), abs(edge[1] / edge[3] - 1))
     a_aff = np.linalg.lstsq(np.c_[src, np.ones(len(src))], _apply(h, src), rcond=None)[0]
     persp = np.linalg.norm(c - np.c_[corners, np.ones(4)] @ a_aff, axis=1).max()
-    return ViewGeometry(float(keystone), float(persp), int(len(src)))
+    return ViewGeometry(float(keystone), float(persp))
 
 def check_flat_view(uv_mm: np.ndarray, pitch_mm: float, refuse: bool = True,
                     max_keystone: float = MAX_KEYSTONE) -> ViewGeometry:
