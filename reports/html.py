@@ -239,7 +239,7 @@ def png_b64(fig) -> str:
 
 #: environment variable: "0" keeps every figure in this process; by default a report draws half of its
 #: figures in a forked process when a core is free (the 5.4 M-point scan: 3.8 s instead of 4.2 s wall at
-#: load 1.9 on 2 cores; it costs 0.15-0.4 s CPU more, so it is skipped on a loaded machine)
+#: load 1.9 on 2 cores; it costs 0.15-0.4 s CPU more, so it is skipped when no core is free)
 FORK_ENV = "MARKCAL_REPORT_FORK"
 #: seconds the parent waits for the child's figures before drawing them itself
 FORK_TIMEOUT_S = 120.0
@@ -252,8 +252,8 @@ def parts_in_two(here, there) -> tuple:
     The child only draws and sends its strings back through a pipe, then ends (``os._exit``); the parent
     always reaps it. A child that fails, sends nothing or takes longer than :data:`FORK_TIMEOUT_S`
     is killed and its parts are drawn here, so an error comes out here, as it would without the
-    child. Not with ``MARKCAL_REPORT_FORK=0``, one core, a loaded machine
-    (1-minute load at or above the core count) or other Python threads running.
+    child. Not with ``MARKCAL_REPORT_FORK=0``, one core, a busy machine
+    (as many runnable tasks as cores, :func:`_busy_cores`) or other Python threads running.
     """
     if not _fork_helps():
         return [f() for f in here], [f() for f in there]
@@ -315,7 +315,20 @@ def _fork_helps() -> bool:
     import threading
     cores = os.cpu_count() or 1
     return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "1") != "0"
-            and threading.active_count() == 1 and os.getloadavg()[0] < cores)
+            and threading.active_count() == 1 and _busy_cores() < cores)
+
+
+def _busy_cores() -> float:
+    """Cores busy now: the runnable tasks, this one included (Linux ``/proc/loadavg``), else the 1-minute load.
+
+    The 1-minute load remembers the last minute (a command run right after another sees its load);
+    the runnable count says whether a core is free at this moment.
+    """
+    try:
+        with open("/proc/loadavg", encoding="ascii") as fh:
+            return float(fh.read().split()[3].split("/")[0])
+    except (OSError, IndexError, ValueError):
+        return os.getloadavg()[0]
 
 
 def img(b64: str, alt: str, caption: str) -> str:

@@ -21,7 +21,8 @@ INTENSITY_NAMES = ("intensity", "scalar_intensity", "reflectance", "scalar_refle
 
 @dataclass(frozen=True)
 class PointCloud:
-    """Scanner-frame points (n, 3) in mm and their backscatter intensity (n,)."""
+    """Scanner-frame points (n, 3) in mm and their backscatter intensity (n,): float32 as the file holds them
+    (lossless), else float64."""
 
     xyz_mm: np.ndarray
     intensity: np.ndarray
@@ -58,10 +59,9 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
         raise exc.with_path(path) from None
     except (ValueError, OSError, EOFError, KeyError, IndexError, RuntimeError, struct.error) as exc:
         raise MarkcalError(f"cannot read {ext[1:].upper()} file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})", path) from None
-    xyz = np.asarray(xyz, np.float64)
+    xyz, inten = _floats(xyz), _floats(inten).ravel()
     if units_scale != 1.0:
-        xyz = xyz * units_scale
-    inten = np.asarray(inten, np.float64).ravel()
+        xyz = xyz.astype(np.float64) * units_scale
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(xyz) != len(inten):
         raise MarkcalError("malformed cloud: need x, y, z and intensity per point", path)
     if len(xyz) == 0:
@@ -77,6 +77,13 @@ def read_cloud(path, units_scale: float = 1.0) -> PointCloud:
     if not np.all(np.isfinite(inten)):
         raise MarkcalError("intensity has NaN or infinite values", path)
     return PointCloud(xyz_mm=xyz, intensity=inten)
+
+
+def _floats(a) -> np.ndarray:
+    """``a`` as float32 or float64: float32 values (most scanners' files) stay float32, which holds them
+    exactly in half the memory (the stages compute in float64); anything else becomes float64."""
+    a = np.asarray(a)
+    return a if a.dtype in (np.float32, np.float64) else a.astype(np.float64)
 
 
 def _pick_intensity(names):
@@ -126,7 +133,7 @@ def _read_ply_binary_vertices(path):
     v = np.fromfile(path, dtype=np.dtype(fields), count=n, offset=nl + 1)
     if len(v) != n:
         raise MarkcalError(f"PLY is truncated: {len(v):,} of {n:,} vertices")
-    xyz = np.empty((n, 3))
+    xyz = np.empty((n, 3), np.result_type(*(v.dtype[c] for c in "xyz")))
     for k, c in enumerate("xyz"):
         xyz[:, k] = v[c]
     return xyz, v[_pick_intensity(names)]

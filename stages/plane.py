@@ -106,12 +106,12 @@ def fit_plane(xyz_mm: np.ndarray, threshold_mm: float = 0.1, seed: int = 0,
     pool = _central(xyz_mm, mid, 0.6 * half)
     if len(pool) <= 1000:
         pool = np.arange(len(xyz_mm))
-    sample = xyz_mm[pool[rng.choice(len(pool), size=min(sample_size, len(pool)), replace=False)]]
+    sample = xyz_mm[pool[rng.choice(len(pool), size=min(sample_size, len(pool)), replace=False)]].astype(float)
     n, d, count = _ransac(sample, threshold_mm, rng)
     if n is None or count < min_inlier_fraction * len(sample):
         raise MarkcalError("no plane found: the cloud is not a scan of a flat plate")
     thr = threshold_mm
-    sub = xyz_mm[rng.choice(len(xyz_mm), size=min(len(xyz_mm), 400_000), replace=False)]
+    sub = xyz_mm[rng.choice(len(xyz_mm), size=min(len(xyz_mm), 400_000), replace=False)].astype(float)
     for _ in range(3):
         res = sub @ n - d
         inl = np.abs(res) < thr

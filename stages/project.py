@@ -69,10 +69,10 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     """
     if max_height_mm is None:
         max_height_mm = max(plane.threshold_mm, 0.05)
-    inten = np.asarray(intensity, np.float64)
+    inten = np.asarray(intensity)                 # float32 or float64 (a cloud keeps its file's floats)
     top = inten.max()
     drop_top = np.count_nonzero(inten == top) > 1e-4 * len(inten)
-    xyz = np.asarray(xyz_mm, np.float64)
+    xyz = np.asarray(xyz_mm)
     u, v, inten = _on_plane_uv(xyz, np.asarray(plane.origin_mm, float), plane.rotation, float(max_height_mm),
                                inten, float(top), bool(drop_top))
     if len(u) < 100:

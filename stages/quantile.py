@@ -49,7 +49,7 @@ def percentiles(a: np.ndarray, q) -> np.ndarray:
     q = np.atleast_1d(np.asarray(q, float))
     n = len(a)
     if n < SMALL:
-        return np.percentile(a, q)
+        return np.percentile(np.asarray(a, float), q)
     sample = np.sort(a[::max(1, n // SAMPLE)])
     out = np.empty(len(q))
     for j, p in enumerate(q):
@@ -60,10 +60,10 @@ def percentiles(a: np.ndarray, q) -> np.ndarray:
         hi = np.percentile(sample, p + MARGIN_PCT) if p + MARGIN_PCT < 100 else np.inf
         below, inside = _bracket(a, lo, hi)
         if below > i0 or below + len(inside) <= i1:          # the sample missed: sort everything
-            out[j] = np.percentile(a, p)
+            out[j] = np.percentile(np.asarray(a, float), p)
             continue
         v = np.partition(inside, [i0 - below, i1 - below]) if len(inside) > 1 else inside
-        x0, x1 = v[i0 - below], v[i1 - below]
+        x0, x1 = float(v[i0 - below]), float(v[i1 - below])      # float32 values: interpolate in float64
         t = pos - i0
         out[j] = x1 - (x1 - x0) * (1 - t) if t >= 0.5 else x0 + (x1 - x0) * t
     return out

@@ -217,7 +217,8 @@ def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, m
 
 
 def test_no_fork_when_turned_off_or_loaded(monkeypatch):
-    monkeypatch.setattr(os, "getloadavg", lambda: (0.1, 0.1, 0.1))
+    busy = [1.0]
+    monkeypatch.setattr(html, "_busy_cores", lambda: busy[0])
     monkeypatch.setattr(os, "cpu_count", lambda: 2)
     import threading
     monkeypatch.setattr(threading, "active_count", lambda: 1)      # pytest-xdist's worker runs threads
@@ -225,5 +226,19 @@ def test_no_fork_when_turned_off_or_loaded(monkeypatch):
     assert not html._fork_helps()                                   # turned off
     monkeypatch.delenv(html.FORK_ENV, raising=False)
     assert html._fork_helps()                                       # the default, with a free core
-    monkeypatch.setattr(os, "getloadavg", lambda: (99.0, 99.0, 99.0))
+    busy[0] = 2.0
     assert not html._fork_helps()                                   # no core is free
+
+
+def test_busy_cores_counts_the_runnable_tasks_now(monkeypatch, tmp_path):
+    import builtins
+    real_open = builtins.open
+    loadavg = tmp_path / "loadavg"
+    loadavg.write_text("2.95 3.01 2.50 1/113 19021\n")            # a minute of load, but only this task runs now
+    monkeypatch.setattr(builtins, "open", lambda f, *a, **k: real_open(loadavg if f == "/proc/loadavg" else f, *a, **k))
+    assert html._busy_cores() == 1.0
+    loadavg.write_text("0.10 0.20 0.30 3/113 19021\n")
+    assert html._busy_cores() == 3.0
+    loadavg.write_text("garbled\n")                                  # unreadable: the 1-minute load
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.5, 0.0, 0.0))
+    assert html._busy_cores() == 1.5
