@@ -19,7 +19,6 @@ from dataclasses import dataclass, field
 from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext
 from markcal.pipeline.registry import all_flows, get_flow, run_and_write
-from markcal.reports.files import start_outputs
 from markcal.stages.errors import MarkcalError, one_line
 from markcal.stages.verdict import evaluate as evaluate_verdict
 
@@ -207,12 +206,12 @@ def run_job(job: dict) -> dict:
         if flow.descriptor.needs_spec and not job.get("spec"):
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
-        start_outputs(job["out_dir"])     # a failure now must not leave an old summary vouching
         index = os.path.join(os.path.dirname(job["out_dir"].rstrip(os.sep)), *[".."] * job["name"].count("/"),
                              "index.html")
         result, _ = run_and_write(job["flow"], job["input"], job["out_dir"], spec_path=job.get("spec"),
                                   options=job["options"], tolerances=job["tolerances"],
-                                  context={"batch_index": os.path.relpath(index, job["out_dir"])})
+                                  context={"batch_index": os.path.relpath(index, job["out_dir"])},
+                                  clear_first=True)     # a failure now must not leave an old summary vouching
         summary = result.summary
         return make_record(job, summary, runtime_s=time.perf_counter() - t0)
     except Exception as exc:  # noqa: BLE001  failure isolation: every error becomes a one-line reason

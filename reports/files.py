@@ -149,9 +149,9 @@ def start_outputs(out_dir) -> str:
     Every flow writes ``summary.json`` last, so a folder whose summary exists is
     complete: it goes first, with every file the earlier run listed in it
     (``outputs``), so a half-rewritten folder never looks complete and never
-    mixes files of two runs.
+    mixes files of two runs. The caller has checked ``out_dir`` with
+    :func:`check_out_dir`, once, before any work.
     """
-    check_out_dir(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "summary.json")
     if os.path.exists(path):
