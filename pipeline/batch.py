@@ -20,7 +20,7 @@ from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext
 from markcal.pipeline.registry import all_flows, get_flow, run_and_write
 from markcal.stages.errors import MarkcalError, one_line
-from markcal.stages.verdict import evaluate as evaluate_verdict
+from markcal.stages.verdict import FAIL, PASS
 
 #: file names written in OUT_DIR itself (not per-input folders)
 INDEX_FILES = ("index.html", "summary.csv", "summary.json")
@@ -173,13 +173,17 @@ def is_done(job) -> bool:
 
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
                 reused: bool = False) -> dict:
-    """The small result record of one input (a row of summary.csv)."""
+    """The small result record of one input (a row of summary.csv).
+
+    Its status, checks and failed checks are the verdict :func:`~markcal.pipeline.registry.judge`
+    wrote into the summary (the report's), not evaluated again.
+    """
     entry = get_flow(job["flow"]).descriptor
     if summary is None:
         status, checks, failed = "error", "", ""
-    else:                                       # as the report's verdict: the input's defaults, then batch.toml's
-        v = evaluate_verdict(summary, {**entry.default_tolerances(summary), **job["tolerances"]})
-        status, checks, failed = {"pass": "pass", "fail": "fail"}.get(v.status, "done"), v.checks, v.failed
+    else:
+        status = {PASS: "pass", FAIL: "fail"}.get(summary.get("verdict"), "done")
+        checks, failed = summary.get("checks") or "", summary.get("failed_checks") or ""
     report = os.path.join(job["out_dir"], "report.html")
     rec = {"name": job["name"], "group": job["group"], "flow": job["flow"], "status": status,
            "reason": reason, "failed_checks": failed, "checks": checks, "input": job["input"],

@@ -130,3 +130,20 @@ def test_commands_writing_without_run_and_write_check_out_before_any_work(argv, 
     """``indents`` and the servo simulation probe --out before reading their input, as every flow command."""
     assert main([*argv, "--out", "/proc/markcal-no-such/o", "--quiet"]) == 1
     _one_line(capsys, "/proc/markcal-no-such/o: cannot write here")
+
+
+def test_batch_record_takes_the_judged_verdict(tmp_path):
+    """A batch record's status and checks are the verdict judge wrote (the report's); a reused record keeps
+    it when batch.toml's limits change (they apply with --force, docs/batch.md)."""
+    d = tmp_path / "in"
+    d.mkdir()
+    save_servo_trace(d / "t.csv", render_servo_trace(2, TraceOptions(kind="step")))
+    job = batch.discover(str(d), str(tmp_path / "out"), batch.read_batch_config(None)).jobs[0]
+    job["tolerances"] = {"max_mae_um": 0.0}                 # out of tolerance
+    rec = batch.run_job(job)
+    s = json.loads(open(os.path.join(job["out_dir"], "summary.json")).read())
+    assert (rec["status"], rec["checks"], rec["failed_checks"]) == ("fail", s["checks"], s["failed_checks"])
+    assert "mae_um <= 0" in s["checks"]
+    job["tolerances"] = {}                                  # loosened in batch.toml, no --force
+    again = batch.reuse_record(job)
+    assert (again["status"], again["checks"]) == ("fail", s["checks"]) and again["reused"]
