@@ -12,21 +12,15 @@ import os
 import tomllib
 from dataclasses import dataclass, fields, replace
 
+from markcal.pipeline.tables import read_input_bytes
 from markcal.stages.errors import MarkcalError
 from markcal.stages.limits import check_text_ends
 from markcal.stages.plate import PURPOSES, PlateSpec
 
 
 def read_bytes(path, what: str = "config file") -> bytes:
-    """A file's bytes; a missing or unreadable file is a MarkcalError naming it."""
-    path = os.fspath(path)
-    try:
-        with open(path, "rb") as fh:
-            return fh.read()
-    except FileNotFoundError:
-        raise MarkcalError(f"no such {what}", path) from None
-    except OSError as exc:
-        raise MarkcalError(f"cannot read ({exc})", path) from None
+    """A config file's bytes (:func:`~markcal.pipeline.tables.read_input_bytes`: "no such <what>" when missing)."""
+    return read_input_bytes(path, what, missing=f"no such {what}")
 
 
 def parse_toml(data: bytes, path) -> dict:
