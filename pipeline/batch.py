@@ -19,9 +19,8 @@ from dataclasses import dataclass, field
 from markcal.pipeline.config import read_batch_config as read_config_file
 from markcal.pipeline.flows.descriptor import file_ext
 from markcal.pipeline.registry import all_flows, get_flow, run_and_write
-from markcal.reports.files import start_outputs
 from markcal.stages.errors import MarkcalError, one_line
-from markcal.stages.verdict import evaluate as evaluate_verdict
+from markcal.stages.verdict import FAIL, PASS
 
 #: file names written in OUT_DIR itself (not per-input folders)
 INDEX_FILES = ("index.html", "summary.csv", "summary.json")
@@ -174,13 +173,17 @@ def is_done(job) -> bool:
 
 def make_record(job, summary: dict | None, reason: str = "", runtime_s: float = float("nan"),
                 reused: bool = False) -> dict:
-    """The small result record of one input (a row of summary.csv)."""
+    """The small result record of one input (a row of summary.csv).
+
+    Its status, checks and failed checks are the verdict :func:`~markcal.pipeline.registry.judge`
+    wrote into the summary (the report's), not evaluated again.
+    """
     entry = get_flow(job["flow"]).descriptor
     if summary is None:
         status, checks, failed = "error", "", ""
-    else:                                       # as the report's verdict: the input's defaults, then batch.toml's
-        v = evaluate_verdict(summary, {**entry.default_tolerances(summary), **job["tolerances"]})
-        status, checks, failed = {"pass": "pass", "fail": "fail"}.get(v.status, "done"), v.checks, v.failed
+    else:
+        status = {PASS: "pass", FAIL: "fail"}.get(summary.get("verdict"), "done")
+        checks, failed = summary.get("checks") or "", summary.get("failed_checks") or ""
     report = os.path.join(job["out_dir"], "report.html")
     rec = {"name": job["name"], "group": job["group"], "flow": job["flow"], "status": status,
            "reason": reason, "failed_checks": failed, "checks": checks, "input": job["input"],
@@ -207,12 +210,12 @@ def run_job(job: dict) -> dict:
         if flow.descriptor.needs_spec and not job.get("spec"):
             raise MarkcalError(f"no spec file: expected {os.path.splitext(os.path.basename(job['input']))[0]}.toml "
                                f"or the folder's default spec beside the input", job["input"])
-        start_outputs(job["out_dir"])     # a failure now must not leave an old summary vouching
         index = os.path.join(os.path.dirname(job["out_dir"].rstrip(os.sep)), *[".."] * job["name"].count("/"),
                              "index.html")
         result, _ = run_and_write(job["flow"], job["input"], job["out_dir"], spec_path=job.get("spec"),
                                   options=job["options"], tolerances=job["tolerances"],
-                                  context={"batch_index": os.path.relpath(index, job["out_dir"])})
+                                  context={"batch_index": os.path.relpath(index, job["out_dir"])},
+                                  clear_first=True)     # a failure now must not leave an old summary vouching
         summary = result.summary
         return make_record(job, summary, runtime_s=time.perf_counter() - t0)
     except Exception as exc:  # noqa: BLE001  failure isolation: every error becomes a one-line reason

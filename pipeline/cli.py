@@ -6,10 +6,10 @@ import gc
 import importlib
 import logging
 import os
-import re
 import sys
 import warnings
 
+from markcal.pipeline.cli_common import ANSI, error_line
 from markcal.stages.errors import MarkcalError
 
 #: modules that add their own sub-commands, in the order of the pipeline: each has
@@ -88,20 +88,9 @@ def main(argv=None) -> int:
             return _run(args)
         finally:
             root.removeHandler(logs)
-            caught = list(caught) + [warnings.WarningMessage(_ANSI.sub("", r.getMessage()), UserWarning,
+            caught = list(caught) + [warnings.WarningMessage(ANSI.sub("", r.getMessage()), UserWarning,
                                                              r.pathname, r.lineno) for r in logs.records]
             _report_warnings(caught, bool(getattr(args, "quiet", False)))
-
-
-_ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
-#: control characters and bidirectional overrides (a file name holding U+202E turns the line around)
-_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
-
-
-def _error_line(text: str) -> None:
-    """``markcal: error: TEXT`` as one line: no ANSI colour codes, no line breaks, no unprintable bytes."""
-    text = _UNSAFE.sub(lambda m: f"\\u{ord(m.group()):04x}", " ".join(_ANSI.sub("", text).split()))
-    print(f"markcal: error: {text}".encode("utf-8", "backslashreplace").decode("utf-8"), file=sys.stderr)
 
 
 def _run(args) -> int:
@@ -112,20 +101,20 @@ def _run(args) -> int:
         ok = True
         return code
     except MarkcalError as exc:
-        _error_line(str(exc))
+        error_line(str(exc))
         return 1
     except KeyboardInterrupt:
         print("markcal: interrupted", file=sys.stderr)
         return 130
     except OSError as exc:              # a folder that cannot be written, a full disk: one line, no traceback
         where = f"{os.fsdecode(exc.filename)}: " if getattr(exc, "filename", None) else ""
-        _error_line(f"{where}{exc.strerror or exc}")
+        error_line(f"{where}{exc.strerror or exc}")
         return 1
     except UnicodeError as exc:         # a name or text no codec can hold
-        _error_line(f"text that cannot be encoded or decoded ({exc})")
+        error_line(f"text that cannot be encoded or decoded ({exc})")
         return 1
     except MemoryError:
-        _error_line("out of memory: the input is larger than this machine can hold")
+        error_line("out of memory: the input is larger than this machine can hold")
         return 1
     except Exception:                   # a bug: keep the traceback, say so
         print("markcal: internal error (a bug, not your input's fault as far as markcal knows): please report it "

@@ -2,6 +2,19 @@
 from __future__ import annotations
 
 import argparse
+import re
+import sys
+
+#: ANSI escape sequences (colour codes) a library may put in a message
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
+#: control characters and bidirectional overrides (a file name holding U+202E turns the line around)
+_UNSAFE = re.compile("[\x00-\x1f\x7f-\x9f\u200e\u200f\u202a-\u202e\u2066-\u2069]")
+
+
+def error_line(text: str) -> None:
+    """``markcal: error: TEXT`` as one line: no ANSI colour codes, no line breaks, no unprintable bytes."""
+    text = _UNSAFE.sub(lambda m: f"\\u{ord(m.group()):04x}", " ".join(ANSI.sub("", text).split()))
+    print(f"markcal: error: {text}".encode("utf-8", "backslashreplace").decode("utf-8"), file=sys.stderr)
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
@@ -22,9 +35,7 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message):
         """A bad command line is bad input: one line on stderr, exit status 1 (not argparse's usage block)."""
-        import sys
-        text = " ".join(str(message).split())
-        print(f"markcal: error: {self.prog}: {text} (see {self.prog} --help)", file=sys.stderr)
+        error_line(f"{self.prog}: {message} (see {self.prog} --help)")
         raise SystemExit(1)
 
     def add_argument(self, *args, **kwargs):

@@ -13,8 +13,9 @@ def cmd_grid(args) -> int:
     from markcal.pipeline.registry import exit_status, get_flow, run_and_write
 
     say = progress(args.quiet)
-    if args.cor and (os.path.isdir(args.cor) or os.path.realpath(args.cor) == os.path.realpath(args.measured)):
-        raise MarkcalError("--cor must name the .cor file to write (not a folder, not the input)", args.cor)
+    if args.cor:
+        from markcal.reports.files import check_out_file
+        check_out_file(args.cor, [args.measured], option="--cor")          # before the fit
     options = {k: getattr(args, k) for k in get_flow("grid").descriptor.options if getattr(args, k) is not None}
     for k in ("units_per_mm", "lens_mm", "d_mm", "grid_step_mm"):       # 0 means "from the input" only in batch.toml
         if k in options and not options[k] > 0:

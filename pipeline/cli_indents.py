@@ -12,7 +12,9 @@ def cmd_indents(args) -> int:
     from markcal.pipeline.flows.indents import indents_options, read_indents_spec, run_indents, with_spec_load
     from markcal.pipeline.cli_common import run_options
     from markcal.pipeline.registry import exit_status, get_flow, judge
+    from markcal.reports.files import check_out_dir
 
+    check_out_dir(args.out)                           # once, before any work
     say = progress(args.quiet)
     spec, load = read_indents_spec(args.array) if args.array else (None, None)
     flow = get_flow("indents")

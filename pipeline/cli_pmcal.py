@@ -34,7 +34,7 @@ def cmd_pmcal(args) -> int:
 
 def cmd_pmcal_command(args) -> int:
     """``markcal pmcal command``: stage commands for targets from a calibration."""
-    from markcal.pipeline.flows.pmcal import check_depth_um, run_command
+    from markcal.pipeline.flows.pmcal import run_command
     from markcal.reports.files import write_csv
 
     if args.depth_um is None:
@@ -42,10 +42,8 @@ def cmd_pmcal_command(args) -> int:
     from markcal.reports.files import check_out_file
     out = os.path.abspath(args.out)
     check_out_file(args.out, [args.calibration, args.targets])
-    check_depth_um(args.depth_um)                  # bad input: refused before the progress line
     say = progress(args.quiet)
-    say(f"stage commands for {args.targets} from {args.calibration}")
-    cols = run_command(args.calibration, args.targets, args.depth_um)
+    cols = run_command(args.calibration, args.targets, args.depth_um, progress=say)
     write_csv(out, cols)
     say(f"{len(cols['x_um'])} commands at depth {args.depth_um:g} µm")
     print(out)

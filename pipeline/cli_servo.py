@@ -42,7 +42,9 @@ def cmd_servo(args) -> int:
             raise MarkcalError("--tol: only with --trace LOG (the simulation compares with the paper instead)")
         from dataclasses import replace
 
+        from markcal.reports.files import check_out_dir
         from markcal.stages.servo_cases import ServoConfig
+        check_out_dir(args.out)                       # once, before any work
         cfg = read_servo_config(args.config) if args.config else ServoConfig()
         if args.settle_band_um is not None:
             cfg = replace(cfg, settle_band_um=args.settle_band_um)

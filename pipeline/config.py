@@ -12,28 +12,28 @@ import os
 import tomllib
 from dataclasses import dataclass, fields, replace
 
+from markcal.pipeline.tables import read_input_bytes
 from markcal.stages.errors import MarkcalError
 from markcal.stages.limits import check_text_ends
 from markcal.stages.plate import PURPOSES, PlateSpec
 
 
-def load_toml(path, what: str = "config file") -> dict:
-    """Read a TOML file; a missing file or bad TOML is a MarkcalError naming it."""
-    path = os.fspath(path)
+def read_bytes(path, what: str = "config file") -> bytes:
+    """A config file's bytes (:func:`~markcal.pipeline.tables.read_input_bytes`: "no such <what>" when missing)."""
+    return read_input_bytes(path, what, missing=f"no such {what}")
+
+
+def parse_toml(data: bytes, path) -> dict:
+    """TOML text (UTF-8 bytes) -> dict; bad TOML is a MarkcalError naming ``path``."""
     try:
-        with open(path, "rb") as fh:
-            return tomllib.load(fh)
-    except FileNotFoundError:
-        raise MarkcalError(f"no such {what}", path) from None
+        return tomllib.loads(data.decode())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise MarkcalError(f"not valid TOML: {exc}", path) from None
-    except OSError as exc:
-        raise MarkcalError(f"cannot read ({exc})", path) from None
 
 
-def _read_bytes(path) -> bytes:
-    with open(path, "rb") as fh:
-        return fh.read()
+def load_toml(path, what: str = "config file") -> dict:
+    """Read a TOML file; a missing file or bad TOML is a MarkcalError naming it."""
+    return parse_toml(read_bytes(path, what), os.fspath(path))
 
 
 @dataclass(frozen=True)
@@ -173,11 +173,11 @@ def read_plate_spec(path) -> PlateSpec:
     unmarked, which tells the plate's orientation at any angle. An empty file,
     or one cut before its ``[grid]`` keys, is refused (no silent defaults)."""
     path = os.fspath(path)
-    if os.path.isfile(path) and os.path.getsize(path) < 4096 and not _read_bytes(path).strip():
+    data = read_bytes(path, "plate spec")                   # read once: the checks below and the TOML
+    if not data.strip():
         raise MarkcalError("empty plate spec: needs [grid] rows, cols and pitch_mm", path)
-    if os.path.isfile(path):
-        check_text_ends(_read_bytes(path), path)
-    c = read_config(path, PLATE_SCHEMA, "plate spec")
+    check_text_ends(data, path)
+    c = parse_config(parse_toml(data, path), PLATE_SCHEMA, path)
     spec = PlateSpec(**c["grid"], **c["fiducial"], **c["galvo"], **c["correction"], **c["plate"])
     hx, hy = spec.half_extent_mm
     nodes = (2 * math.ceil(hx / spec.grid_step_mm) + 1) * (2 * math.ceil(hy / spec.grid_step_mm) + 1)

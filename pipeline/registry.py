@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from markcal.pipeline.flows.descriptor import FlowDescriptor
-from markcal.reports.files import check_out_dir
+from markcal.reports.files import check_out_dir, start_outputs
 from markcal.stages.errors import MarkcalError
 from markcal.stages.verdict import FAIL, evaluate
 
@@ -172,7 +172,8 @@ def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict
 
 
 def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict | None = None,
-                  progress=None, tolerances: dict | None = None, context: dict | None = None) -> tuple:
+                  progress=None, tolerances: dict | None = None, context: dict | None = None,
+                  clear_first: bool = False) -> tuple:
     """Run flow ``name`` on one input and write its files, as the single command and the batch do.
 
     Parameters
@@ -192,6 +193,9 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
         (``verdict``, ``checks``, ``failed_checks``) goes into the summary and the report.
     context : dict, optional
         ``machine``, ``lens``, ``operator``, ``note``: recorded in the summary and the report.
+    clear_first : bool
+        Remove what an earlier run wrote in ``out_dir`` before the run (the batch: a run that
+        fails then leaves no old summary vouching for the input), not only when writing.
 
     Returns
     -------
@@ -204,7 +208,9 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     if d.needs_spec and not spec_path:
         raise MarkcalError("no spec file: expected <stem>.toml or the folder's default spec beside the input",
                            input_path)
-    check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])
+    check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])     # once, before any work
+    if clear_first:
+        start_outputs(out_dir)
     result = d.run(input_path, spec_path, opts, progress)
     judge(name, result.summary, input_path, spec_path, tolerances, context)
     if progress:

@@ -22,8 +22,9 @@ def _refuse_constant(name):
     raise ValueError(f"{name} is not a number JSON allows")
 
 
-def read_input_bytes(path, what: str = "file") -> bytes:
-    """The bytes of an input file; a missing, non-regular (FIFO: it would hang) or unreadable one is refused."""
+def read_input_bytes(path, what: str = "file", missing: str = "no such file") -> bytes:
+    """The bytes of an input file; a missing (``missing`` says so), non-regular (FIFO: it would hang) or
+    unreadable one is refused."""
     path = os.fspath(path)
     if os.path.exists(path) and not os.path.isfile(path):
         raise MarkcalError("not a regular file (a folder, FIFO or device)", path)
@@ -31,7 +32,7 @@ def read_input_bytes(path, what: str = "file") -> bytes:
         with open(path, "rb") as fh:
             return fh.read()
     except FileNotFoundError:
-        raise MarkcalError("no such file", path) from None
+        raise MarkcalError(missing, path) from None
     except OSError as exc:
         raise MarkcalError(f"cannot read {what} ({exc.strerror or exc})", path) from None
 

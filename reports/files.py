@@ -44,32 +44,39 @@ def atomic_write_text(path, text: str) -> None:
 LOCK_NAME = ".markcal.lock"
 
 
-def check_out_dir(out_dir, inputs=()) -> None:
-    """Refuse an output folder that is an existing file, an input itself, or a folder holding an input."""
-    from markcal.stages.errors import MarkcalError
-    check_path_length(out_dir)
-    out = os.path.realpath(out_dir)
-    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
-        raise MarkcalError("--out names an existing file, not a folder", out_dir)
+def _input_within(out_path, inputs):
+    """The first of ``inputs`` that is ``out_path`` itself or lies inside it (None when none does)."""
+    out = os.path.realpath(out_path)
     for p in inputs:
         rp = os.path.realpath(p)
         if rp == out or rp.startswith(out.rstrip(os.sep) + os.sep):
-            raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
-                               "choose another folder", out_dir)
+            return p
+    return None
+
+
+def check_out_dir(out_dir, inputs=()) -> None:
+    """Refuse an output folder that is an existing file, an input itself, a folder holding an input, or one
+    that cannot be written in (:func:`check_writable`). Call it once, before any computation."""
+    from markcal.stages.errors import MarkcalError
+    check_path_length(out_dir)
+    if os.path.exists(out_dir) and not os.path.isdir(out_dir):
+        raise MarkcalError("--out names an existing file, not a folder", out_dir)
+    p = _input_within(out_dir, inputs)
+    if p is not None:
+        raise MarkcalError(f"--out is the input or a folder holding it ({p}): outputs could overwrite it; "
+                           "choose another folder", out_dir)
     check_writable(out_dir)
 
 
-def check_out_file(out_path, inputs=()) -> None:
+def check_out_file(out_path, inputs=(), option: str = "--out") -> None:
     """Refuse an output *file* path that names a folder, an input, or lies in a folder that does not exist
-    and cannot be made (checked before any computation)."""
+    and cannot be made (checked before any computation). ``option`` names the flag in the messages."""
     from markcal.stages.errors import MarkcalError
     if os.path.isdir(out_path):
-        raise MarkcalError("--out names a folder; give the table file to write", out_path)
-    rp = os.path.realpath(out_path)
-    for p in inputs:
-        ip = os.path.realpath(p)
-        if rp == ip or ip.startswith(rp.rstrip(os.sep) + os.sep):
-            raise MarkcalError(f"--out would overwrite an input ({p})", out_path)
+        raise MarkcalError(f"{option} names a folder; give the table file to write", out_path)
+    p = _input_within(out_path, inputs)
+    if p is not None:
+        raise MarkcalError(f"{option} would overwrite an input ({p})", out_path)
     check_path_length(out_path)
     check_writable(os.path.dirname(os.path.abspath(out_path)), named=out_path)
 
@@ -142,9 +149,9 @@ def start_outputs(out_dir) -> str:
     Every flow writes ``summary.json`` last, so a folder whose summary exists is
     complete: it goes first, with every file the earlier run listed in it
     (``outputs``), so a half-rewritten folder never looks complete and never
-    mixes files of two runs.
+    mixes files of two runs. The caller has checked ``out_dir`` with
+    :func:`check_out_dir`, once, before any work.
     """
-    check_out_dir(out_dir)
     os.makedirs(out_dir, exist_ok=True)
     path = os.path.join(out_dir, "summary.json")
     if os.path.exists(path):

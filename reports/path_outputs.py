@@ -10,7 +10,7 @@ import os
 import numpy as np
 
 
-from markcal.reports.files import OutputFolder, check_out_dir
+from markcal.reports.files import OutputFolder
 from markcal.reports.path_report import ordered_names, path_report_html
 from markcal.stages.job_formats import job_writer
 
@@ -80,7 +80,6 @@ def write_path_outputs(result, out_dir, report: bool = True) -> dict:
         Output name -> path.
     """
     names = ordered_names(result)
-    check_out_dir(out_dir, [result.source])
     out = OutputFolder(out_dir)
     if result.inp.fmt == "csv":
         out.text("ordered.csv", ordered_csv_text(result))

@@ -194,7 +194,7 @@ def check_log_units(time_unit: str, pos_unit: str, counts_per_mm: float) -> None
 
 
 def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit="s", pos_unit="mm",
-             counts_per_mm: float = 0.0) -> DriveLog:
+             counts_per_mm: float = 0.0, layout: LogLayout | None = None) -> DriveLog:
     """Read a drive log into time (s), reference and position (mm).
 
     Parameters
@@ -209,6 +209,8 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
         Unit of the reference and position columns.
     counts_per_mm : float
         Encoder counts per mm (required when ``pos_unit == "counts"``).
+    layout : LogLayout, optional
+        The log's :func:`sniff_layout`, when the caller has read it already.
 
     Raises
     ------
@@ -220,7 +222,7 @@ def read_log(path, time_col="t_s", ref_col="ref_mm", pos_col="pos_mm", time_unit
 
     path = os.fspath(path)
     check_log_units(time_unit, pos_unit, counts_per_mm)
-    lay = sniff_layout(path)
+    lay = layout or sniff_layout(path)
     check_file_ends(path)
     roles = (("time", time_col), ("reference", ref_col), ("position", pos_col))
     idx = [_column_index(spec, lay, role, path) for role, spec in roles]

@@ -77,3 +77,12 @@ def test_usage_mistakes_are_one_line_exit_1(capsys):
             main(argv)
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("markcal: error: "), (argv, err)
+
+
+def test_usage_mistake_prints_through_the_one_error_printer(capsys):
+    """A bad command line is printed as every other error: no ANSI codes, no bidirectional overrides."""
+    with pytest.raises(SystemExit, match="1"):
+        main(["pmcal", "command", "a.json", "b.csv", "\u202e\x1b[31mc.csv", "--depth-um", "1", "--out", "x.csv"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unrecognized arguments: \\u202ec.csv (see markcal" in err[0], err
+    assert "\u202e" not in err[0] and "\x1b" not in err[0]

@@ -296,11 +296,25 @@ def test_bad_inputs(tmp_path, capsys):
     assert main(["grid", str(_csv(tmp_path / "good.csv", rows)), "--out", str(out), "--cor", str(tmp_path),
                  "--quiet"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--cor must name the .cor file" in err[0], err
+    assert len(err) == 1 and "--cor names a folder" in err[0], err
     assert not os.path.exists(out / "summary.json")
     sheet = tmp_path / "sheet"
     main(["render", "grid-job", "--out", str(sheet)])
     _fails(capsys, sheet / "measure.csv", out, ["only 0 measured"])
+
+
+def test_unwritable_cor_is_refused_before_the_fit(tmp_path, capsys, monkeypatch):
+    """--cor goes through the same check as --out: a folder it cannot write in fails before any work."""
+    from markcal.pipeline.flows import grid as grid_flow
+    fits, run_grid = [], grid_flow.run_grid
+    monkeypatch.setattr(grid_flow, "run_grid", lambda *a, **k: fits.append(1) or run_grid(*a, **k))
+    out = tmp_path / "out"
+    bad = "/proc/markcal-no-such/t.cor"                # /proc takes no new folders, even as root
+    assert main(["grid", str(_csv(tmp_path / "good.csv", _good_rows())), "--out", str(out), "--cor", bad,
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"markcal: error: {bad}: cannot write here"), err
+    assert fits == [] and not out.exists()
 
 
 def test_nine_marks_are_enough(tmp_path):

@@ -96,3 +96,25 @@ def test_negative_seed_refused_for_every_flow_with_a_seed():
     for d in seeded:
         with pytest.raises(MarkcalError, match="seed must be a whole number"):
             d.check_options({"seed": -1})
+
+
+def test_plate_spec_is_read_once(tmp_path, monkeypatch):
+    """read_plate_spec opens its file once for the emptiness and truncation checks and the TOML."""
+    import builtins
+
+    from markcal.fixtures.scan_plate import plate_spec_toml
+    from markcal.pipeline.config import read_plate_spec
+    from markcal.stages.errors import MarkcalError
+    from markcal.stages.plate import PlateSpec
+    p = tmp_path / "plate.toml"
+    p.write_text(plate_spec_toml(PlateSpec(rows=7, cols=7)))
+    opened, real_open = [], builtins.open
+    monkeypatch.setattr(builtins, "open", lambda f, *a, **k: opened.append(f) or real_open(f, *a, **k))
+    assert read_plate_spec(p).rows == 7
+    assert [f for f in opened if str(f) == str(p)] == [str(p)]
+    p.write_text(" \n")
+    with pytest.raises(MarkcalError, match="empty plate spec"):
+        read_plate_spec(p)
+    p.write_text(plate_spec_toml(PlateSpec(rows=7, cols=7)).rstrip("\n"))
+    with pytest.raises(MarkcalError, match="no line end"):
+        read_plate_spec(p)

@@ -98,3 +98,52 @@ def test_batch_skips_a_fifo(tmp_path):
     found = batch.discover(str(d), str(tmp_path / "out"), batch.read_batch_config(None))
     assert [os.path.basename(j["input"]) for j in found.jobs] == ["t.csv"]
     assert found.ignored == ["pipe.csv (not a regular file)"]
+
+
+def test_out_folder_probed_once_per_input_and_a_failed_batch_job_leaves_no_summary(tmp_path, monkeypatch):
+    """The writability probe runs once per input, before any work (single commands and batch jobs); a batch
+    job still removes its old summary before the run, so a run that fails leaves none vouching."""
+    from markcal.reports import files
+    probes, probe = [], files.check_writable
+    monkeypatch.setattr(files, "check_writable", lambda *a, **k: probes.append(a[0]) or probe(*a, **k))
+    d = tmp_path / "in"
+    d.mkdir()
+    save_servo_trace(d / "t.csv", render_servo_trace(2, TraceOptions(kind="step")))
+    (d / "p.json").write_text(json.dumps({"strokes": [{"kind": "point", "xy_mm": [float(x), 0.0]}
+                                                      for x in np.arange(5.0)]}))
+    assert main(["servo", "--trace", str(d / "t.csv"), "--out", str(tmp_path / "s"), "--quiet", "--no-report"]) == 0
+    assert main(["path", str(d / "p.json"), "--out", str(tmp_path / "p"), "--quiet", "--no-report"]) == 0
+    assert len(probes) == 2, probes
+    probes.clear()
+    found = batch.discover(str(d), str(tmp_path / "out"), batch.read_batch_config(None))
+    recs = [batch.run_job(j) for j in found.jobs]
+    assert all(r["status"] != "error" for r in recs) and len(probes) == 2, (recs, probes)
+    job = next(j for j in found.jobs if j["flow"] == "servo")
+    assert os.path.exists(os.path.join(job["out_dir"], "summary.json"))
+    (d / "t.csv").write_text("t_s,ref_mm,pos_mm\n0,0,0\n")
+    assert batch.run_job(job)["status"] == "error"
+    assert not os.path.exists(os.path.join(job["out_dir"], "summary.json"))
+
+
+@pytest.mark.parametrize("argv", [["indents", "/nonexistent.tif"], ["servo", "/nonexistent.toml"]])
+def test_commands_writing_without_run_and_write_check_out_before_any_work(argv, capsys):
+    """``indents`` and the servo simulation probe --out before reading their input, as every flow command."""
+    assert main([*argv, "--out", "/proc/markcal-no-such/o", "--quiet"]) == 1
+    _one_line(capsys, "/proc/markcal-no-such/o: cannot write here")
+
+
+def test_batch_record_takes_the_judged_verdict(tmp_path):
+    """A batch record's status and checks are the verdict judge wrote (the report's); a reused record keeps
+    it when batch.toml's limits change (they apply with --force, docs/batch.md)."""
+    d = tmp_path / "in"
+    d.mkdir()
+    save_servo_trace(d / "t.csv", render_servo_trace(2, TraceOptions(kind="step")))
+    job = batch.discover(str(d), str(tmp_path / "out"), batch.read_batch_config(None)).jobs[0]
+    job["tolerances"] = {"max_mae_um": 0.0}                 # out of tolerance
+    rec = batch.run_job(job)
+    s = json.loads(open(os.path.join(job["out_dir"], "summary.json")).read())
+    assert (rec["status"], rec["checks"], rec["failed_checks"]) == ("fail", s["checks"], s["failed_checks"])
+    assert "mae_um <= 0" in s["checks"]
+    job["tolerances"] = {}                                  # loosened in batch.toml, no --force
+    again = batch.reuse_record(job)
+    assert (again["status"], again["checks"]) == ("fail", s["checks"]) and again["reused"]

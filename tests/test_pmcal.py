@@ -214,6 +214,22 @@ def test_bad_sessions(session, tmp_path, capsys):
                                            "--depth-um", "1", "--out", out, "--quiet"])
 
 
+def test_command_checks_the_depth_once_before_its_progress_line(tmp_path, capsys, monkeypatch):
+    """``pmcal command --depth-um nan``: refused by one check, one line on stderr (no progress line first)."""
+    from markcal.pipeline.flows import pmcal as pmcal_flow
+    calls, check = [], pmcal_flow.check_depth_um
+    monkeypatch.setattr(pmcal_flow, "check_depth_um", lambda d: calls.append(d) or check(d))
+    out = tmp_path / "c.csv"
+    assert main(["pmcal", "command", "a.json", "b.csv", "--depth-um", "nan", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("markcal: error: --depth-um must be a finite number"), err
+    assert len(calls) == 1 and not out.exists()
+    calls.clear()                                          # a good depth: checked once, then the missing file
+    assert main(["pmcal", "command", str(tmp_path / "a.json"), "b.csv", "--depth-um", "1", "--out", str(out),
+                 "--quiet"]) == 1
+    assert calls == [1.0] and "no such" in capsys.readouterr().err
+
+
 def test_small_probe_grid_warns_but_runs(session, tmp_path):
     d = _copy(session, tmp_path)
     t = read_csv(d / "probe.csv")

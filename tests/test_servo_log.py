@@ -185,6 +185,27 @@ def test_guess_columns_by_name():
     assert guess_columns(("name", "value", "comment")) == {}
 
 
+def test_trace_reads_the_header_once(tmp_path, monkeypatch):
+    """A log whose columns are found by name (time_ms, demand, actual): its header is sniffed once, and the
+    units the names carry reach the summary."""
+    from markcal.pipeline.flows import servo as servo_flow
+    from markcal.stages import servo_log
+    r = render_servo_log(3, LogOptions(n_moves=2, time_unit="ms", jitter=0.0))
+    p = tmp_path / "axis.csv"
+    with open(p, "w") as fh:
+        fh.write("time_ms,demand,actual\n")
+        fh.writelines(f"{a * 1e3:.4f},{b:.6f},{c:.6f}\n" for a, b, c in zip(r.t_s, r.ref_mm, r.pos_mm))
+    calls, sniff = [], servo_log.sniff_layout
+    counting = lambda path: calls.append(path) or sniff(path)                  # noqa: E731
+    monkeypatch.setattr(servo_log, "sniff_layout", counting)
+    monkeypatch.setattr(servo_flow, "sniff_layout", counting)
+    res = servo_flow.run_servo_trace(p)
+    assert len(calls) == 1
+    s = res.summary
+    assert (s["time_col"], s["ref_col"], s["pos_col"], s["time_unit"], s["n_moves"]) == \
+        ("time_ms", "demand", "actual", "ms", 2)
+
+
 def test_columns_by_index_and_case(tmp_path, capsys):
     r = render_servo_log(5, LogOptions(n_moves=2, layout="tsv"))
     p = tmp_path / "d.tsv"

@@ -367,9 +367,14 @@ def check_depth_um(depth_um: float) -> None:
         raise MarkcalError(f"--depth-um must be a finite number within ±{max_abs_for('depth_um'):g} µm (got {depth_um})")
 
 
-def run_command(calibration_path, targets_path, depth_um: float) -> dict:
-    """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv."""
+def run_command(calibration_path, targets_path, depth_um: float, progress=None) -> dict:
+    """Targets ``x_um,y_um`` (OM frame, on the workpiece) -> columns of commands.csv.
+
+    The depth is checked first, before ``progress(msg)`` says what is being done.
+    """
     check_depth_um(depth_um)
+    if progress:
+        progress(f"stage commands for {targets_path} from {calibration_path}")
     model, _ = read_calibration(calibration_path)
     t = read_table(targets_path, ("x_um", "y_um"))
     xy = np.column_stack([t["x_um"], t["y_um"]])

@@ -182,20 +182,17 @@ class TraceAnalysis:
 _ROLE_OPTION = {"time": "time_col", "reference": "ref_col", "position": "pos_col"}
 
 
-def resolve_columns(path, options: dict) -> dict:
+def resolve_columns(header, options: dict) -> dict:
     """Fill in columns (and the units their names carry) a log names differently from the defaults.
 
-    A column option left at its default (``t_s``, ``ref_mm``, ``pos_mm``) that
-    the log's header lacks is replaced by the column :func:`guess_columns` finds
-    for that role ("time_ms", "demand", "actual", ...); the time unit (and a
-    position unit of µm) follows the guessed column's name when its option is
-    at its default. Anything given explicitly is kept.
+    ``header`` is the log's header row (empty when it has none). A column option
+    left at its default (``t_s``, ``ref_mm``, ``pos_mm``) that the header lacks is
+    replaced by the column :func:`guess_columns` finds for that role ("time_ms",
+    "demand", "actual", ...); the time unit (and a position unit of µm) follows the
+    guessed column's name when its option is at its default. Anything given
+    explicitly is kept.
     """
     o = dict(options)
-    try:
-        header = sniff_layout(path).header
-    except MarkcalError:
-        return o                                   # read_log reports the problem
     low = {h.lower() for h in header}
     guess = guess_columns(header) if header else {}
     for role, key in _ROLE_OPTION.items():
@@ -210,18 +207,29 @@ def resolve_columns(path, options: dict) -> dict:
     return o
 
 
-def read_trace(path, options: dict | None = None) -> DriveLog:
+def read_trace(path, options: dict | None = None) -> tuple:
     """Read and check a drive log with the trace options (columns, units); see :func:`read_log`.
 
-    Columns named otherwise than the defaults are found by :func:`resolve_columns`.
-    Refused: a missing or non-numeric column, fewer than 20 rows, time out of
-    order or repeated, gaps over 10 samples, a reference that never moves.
+    Columns named otherwise than the defaults are found by :func:`resolve_columns`
+    (the header is read once). Refused: a missing or non-numeric column, fewer
+    than 20 rows, time out of order or repeated, gaps over 10 samples, a
+    reference that never moves.
+
+    Returns
+    -------
+    log, options
+        The :class:`DriveLog` and the options with the columns and units it was read with.
     """
-    o = resolve_columns(path, {**TRACE_OPTIONS, **(options or {})})
+    o = {**TRACE_OPTIONS, **(options or {})}
+    try:
+        layout = sniff_layout(path)
+    except MarkcalError:
+        layout = None                              # read_log reports the problem, after the units' check
+    o = resolve_columns(layout.header if layout else (), o)
     log = read_log(path, o["time_col"], o["ref_col"], o["pos_col"], o["time_unit"], o["pos_unit"],
-                   float(o["counts_per_mm"]))
+                   float(o["counts_per_mm"]), layout=layout)
     check_log(log, os.fspath(path))
-    return log
+    return log, o
 
 
 def _band(options) -> tuple:
@@ -251,8 +259,7 @@ def run_servo_trace(path, options: dict | None = None, progress=None) -> ServoRe
     abs_um, band_pct = _band(o)
     t0 = time.perf_counter()
     path = os.fspath(path)
-    o = resolve_columns(path, o)
-    log = read_trace(path, o)
+    log, o = read_trace(path, o)
     t, ref, pos = log.t_s, log.ref_mm, log.pos_mm
     say(f"read {len(t):,} samples ({', '.join(log.columns)})")
     mv = find_moves(ref)
