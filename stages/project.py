@@ -10,6 +10,9 @@ from .errors import MarkcalError
 from .plane import Plane
 from .quantile import percentiles
 
+#: about this many points (every k-th) give the raster's extent, the 0.01-99.99 percentiles of (u, v)
+EXTENT_SAMPLE = 500_000
+
 
 @dataclass(frozen=True)
 class Raster:
@@ -73,9 +76,11 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     top = inten.max()
     drop_top = np.count_nonzero(inten == top) > 1e-4 * len(inten)
     xyz = np.asarray(xyz_mm)
-    u, v, inten = _on_plane_uv(xyz, np.asarray(plane.origin_mm, float), plane.rotation, float(max_height_mm),
-                               inten, float(top), bool(drop_top))
-    if len(u) < 100:
+    origin, rot, max_h = np.asarray(plane.origin_mm, float), plane.rotation, float(max_height_mm)
+    # the raster spans the 0.01-99.99 percentiles of the on-plane (u, v), read off every step-th point
+    step = max(1, len(xyz) // EXTENT_SAMPLE)
+    u, v, _ = _on_plane_uv(xyz[::step], origin, rot, max_h, inten[::step], float(top), bool(drop_top))
+    if len(u) == 0:
         raise MarkcalError("fewer than 100 points lie on the plate plane")
     lo = np.array([percentiles(u, [0.01, 99.99]), percentiles(v, [0.01, 99.99])]).T
     lo, hi = lo[0], lo[1]
@@ -83,8 +88,10 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     ncol, nrow = (np.ceil((hi - lo) / pixel_mm).astype(int) + 1)
     if nrow * ncol > 200_000_000:
         raise MarkcalError(f"plate raster would be {nrow} x {ncol} cells: coordinates are not in mm")
-    mean_i, mean_u, mean_v, count = _bin_means(u, v, inten, float(lo[0]), float(lo[1]), float(pixel_mm),
-                                               int(nrow), int(ncol))
+    mean_i, mean_u, mean_v, count, n_on = _bin_on_plane(xyz, origin, rot, max_h, inten, float(top), bool(drop_top),
+                                                        float(lo[0]), float(lo[1]), float(pixel_mm), int(nrow), int(ncol))
+    if n_on < 100:
+        raise MarkcalError("fewer than 100 points lie on the plate plane")
     return Raster(intensity=mean_i, u_mm=mean_u, v_mm=mean_v, valid=count > 0, u0_mm=float(lo[0]),
                   v0_mm=float(lo[1]), pixel_mm=float(pixel_mm))
 
@@ -112,20 +119,30 @@ def _on_plane_uv(xyz, origin, rot, max_h, inten, top, drop_top):  # pragma: no c
 
 
 @njit(cache=True, nogil=True)
-def _bin_means(u, v, w, u0, v0, pixel, nrow, ncol):  # pragma: no cover - compiled
-    """Per-cell means of intensity (float32), u and v (NaN where empty) and the point count."""
-    count = np.zeros((nrow, ncol), np.int64)
+def _bin_on_plane(xyz, origin, rot, max_h, inten, top, drop_top, u0, v0, pixel, nrow, ncol):  # pragma: no cover
+    """Per-cell means of intensity (float32), u and v (NaN where empty), the point count per cell and the
+    number of on-plane points (as :func:`_on_plane_uv` selects them), in one pass over the cloud."""
+    count = np.zeros((nrow, ncol), np.int32)
     si = np.zeros((nrow, ncol))
     su = np.zeros((nrow, ncol))
     sv = np.zeros((nrow, ncol))
-    for k in range(len(u)):
-        c = int(np.floor((u[k] - u0) / pixel))
-        r = int(np.floor((v[k] - v0) / pixel))
-        if 0 <= c < ncol and 0 <= r < nrow:
-            count[r, c] += 1
-            si[r, c] += w[k]
-            su[r, c] += u[k]
-            sv[r, c] += v[k]
+    n_on = 0
+    for k in range(xyz.shape[0]):
+        dx = xyz[k, 0] - origin[0]
+        dy = xyz[k, 1] - origin[1]
+        dz = xyz[k, 2] - origin[2]
+        h = dx * rot[2, 0] + dy * rot[2, 1] + dz * rot[2, 2]
+        if abs(h) < max_h and not (drop_top and inten[k] >= top):
+            n_on += 1
+            u = dx * rot[0, 0] + dy * rot[0, 1] + dz * rot[0, 2]
+            v = dx * rot[1, 0] + dy * rot[1, 1] + dz * rot[1, 2]
+            c = int(np.floor((u - u0) / pixel))
+            r = int(np.floor((v - v0) / pixel))
+            if 0 <= c < ncol and 0 <= r < nrow:
+                count[r, c] += 1
+                si[r, c] += inten[k]
+                su[r, c] += u
+                sv[r, c] += v
     mi = np.empty((nrow, ncol), np.float32)
     for r in range(nrow):
         for c in range(ncol):
@@ -138,4 +155,4 @@ def _bin_means(u, v, w, u0, v0, pixel, nrow, ncol):  # pragma: no cover - compil
                 mi[r, c] = np.nan
                 su[r, c] = np.nan
                 sv[r, c] = np.nan
-    return mi, su, sv, count
+    return mi, su, sv, count, n_on
