@@ -8,6 +8,7 @@ batch index lists the flows.
 from __future__ import annotations
 
 import importlib
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
 
@@ -122,10 +123,19 @@ def data_time(path) -> str | None:
     return None
 
 
-def provenance(input_path, spec_path=None, context: dict | None = None) -> dict:
+def input_digests(input_path, spec_path=None) -> dict:
+    """``input_sha256`` (``; ``-joined for several inputs) and ``spec_sha256`` (when a spec is given)."""
+    paths = input_path if isinstance(input_path, (list, tuple)) else [input_path]
+    out = {"input_sha256": "; ".join(sha256_of(p) for p in paths)}
+    if spec_path:
+        out["spec_sha256"] = sha256_of(spec_path)
+    return out
+
+
+def provenance(input_path, spec_path=None, context: dict | None = None, digests: dict | None = None) -> dict:
     """Summary keys that make a result traceable: version, UTC date, command, inputs and their SHA-256,
     the data's own timestamp (``data_time``) when the file has one, and the user's ``machine``, ``lens``,
-    ``operator``, ``note`` when given."""
+    ``operator``, ``note`` when given. ``digests``: :func:`input_digests`, when already computed."""
     import datetime
     import os
     import sys
@@ -134,13 +144,14 @@ def provenance(input_path, spec_path=None, context: dict | None = None) -> dict:
            "date_utc": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
            "command": " ".join(["markcal", *sys.argv[1:]]) if os.path.basename(sys.argv[0]) == "markcal"
            else " ".join(sys.argv),
-           "input": "; ".join(os.path.abspath(p) for p in paths),
-           "input_sha256": "; ".join(sha256_of(p) for p in paths)}
+           "input": "; ".join(os.path.abspath(p) for p in paths)}
+    digests = digests if digests is not None else input_digests(input_path, spec_path)
+    out["input_sha256"] = digests["input_sha256"]
     stamps = [t for t in (data_time(p) for p in paths) if t]
     if stamps:
         out["data_time"] = min(stamps)
     if spec_path:
-        out.update(spec=os.path.abspath(spec_path), spec_sha256=sha256_of(spec_path))
+        out.update(spec=os.path.abspath(spec_path), spec_sha256=digests["spec_sha256"])
     for k, v in (context or {}).items():
         if v:
             out[k] = str(v)
@@ -157,10 +168,10 @@ def check_tolerance_keys(name: str, summary: dict, tolerances: dict, path=None) 
 
 
 def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict | None = None,
-          context: dict | None = None) -> None:
+          context: dict | None = None, digests: dict | None = None) -> None:
     """Add the verdict (the flow's default limits overridden by ``tolerances``) and the provenance to ``summary``.
 
-    ``input_path`` may be a list (several files pooled in one result).
+    ``input_path`` may be a list (several files pooled in one result); ``digests`` as :func:`provenance`.
     """
     check_tolerance_keys(name, summary, tolerances or {}, input_path if not isinstance(input_path, list) else None)
     d = get_flow(name).descriptor
@@ -168,7 +179,7 @@ def judge(name: str, summary: dict, input_path, spec_path=None, tolerances: dict
     v = evaluate(summary, limits)
     labels = "; ".join(d.figure(k[4:]).caption for k in limits)
     summary.update(verdict=v.status, checks=v.checks, check_labels=labels, failed_checks=v.failed,
-                   **provenance(input_path, spec_path, context))
+                   **provenance(input_path, spec_path, context, digests))
 
 
 def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict | None = None,
@@ -211,8 +222,12 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])     # once, before any work
     if clear_first:
         start_outputs(out_dir)
-    result = d.run(input_path, spec_path, opts, progress)
-    judge(name, result.summary, input_path, spec_path, tolerances, context)
+    # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow runs
+    with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
+        digests = pool.submit(input_digests, input_path, spec_path)
+        result = d.run(input_path, spec_path, opts, progress)
+        digests = digests.result()
+    judge(name, result.summary, input_path, spec_path, tolerances, context, digests)
     if progress:
         progress("writing tables and report")
     paths = flow.write(result, out_dir, report=not opts.get("no_report", False))

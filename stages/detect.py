@@ -21,6 +21,11 @@ from skimage.transform import hough_circle
 from .project import Raster
 from .quantile import percentiles
 
+#: the fine ring fit uses the samples within this distance of the rings (mm)
+RING_BAND_MM = 0.3
+#: sample spacing enough for the wide-line capture pass of the ring fits on scan rasters (mm)
+CAPTURE_STEP_MM = 0.2
+
 
 @dataclass(frozen=True)
 class EdgeImages:
@@ -418,17 +423,20 @@ def refine_rings(raster: Raster, uv0_mm: np.ndarray, radii_mm, chunk: int = 96,
         capture pass runs on it, the fine fit on ``raster``.
     """
     radii = tuple(float(r) for r in radii_mm)
-    # fine images (cells < 0.05 mm): every stride-th cell (~0.06 mm apart, 3 across the 0.2 mm ring gap)
-    # and, in the fine fit, only a band of +-0.3 mm around the rings; about 100 rings per batch at 0.1 mm
+    # fine images (cells < 0.05 mm): every stride-th cell (~0.06 mm apart, 3 across the 0.2 mm ring gap);
+    # the fine fit takes the band of +-RING_BAND_MM around the rings; about 100 rings per batch at 0.1 mm
     # cells, fewer on fine images
     fine = raster.pixel_mm < 0.05
     stride = max(1, int(round(0.06 / raster.pixel_mm))) if fine else 1
-    first, stride1 = (coarse, 1) if coarse is not None else (raster, stride)
+    # on scan rasters the wide-line capture pass (a 0.15 mm line) takes a sample every ~0.2 mm; fine images
+    # keep theirs (from starts 0.3 mm off, fewer samples missed the rings' fine structure there)
+    first, stride1 = ((coarse, 1) if coarse is not None else
+                      (raster, stride if fine else max(1, int(CAPTURE_STEP_MM / raster.pixel_mm + 1e-9))))
     cell = raster.pixel_mm * stride
     chunk = max(2, min(chunk, int(chunk * (cell / 0.1) ** 2)))
     reach = max(radii) + 0.5
     inner = max(min(radii) - 0.5, 0.0)
-    reach_b, inner_b = (max(radii) + 0.3, max(min(radii) - 0.3, 0.0)) if fine else (reach, inner)
+    reach_b, inner_b = max(radii) + RING_BAND_MM, max(min(radii) - RING_BAND_MM, 0.0)
     out = {k: [] for k in ("uv", "m", "w", "a", "rms", "n", "shift")}
     free_a = np.array([1, 1, 1, 1, 1, 0, 1, 1], float)
     free_b = np.ones(8)
