@@ -27,7 +27,18 @@ COMMAND_MODULES: tuple = (
 )
 
 
-def build_parser() -> argparse.ArgumentParser:
+#: the module that registers each top-level command other than ``render`` (whose kinds come from every module)
+COMMAND_OWNERS: dict = {"scan": "markcal.pipeline.cli_scan", "indents": "markcal.pipeline.cli_indents",
+                        "selfcal": "markcal.pipeline.cli_selfcal", "pmcal": "markcal.pipeline.cli_pmcal",
+                        "path": "markcal.pipeline.cli_path", "servo": "markcal.pipeline.cli_servo",
+                        "grid": "markcal.pipeline.cli_grid", "export": "markcal.pipeline.cli_export",
+                        "inspect": "markcal.pipeline.cli_export", "batch": "markcal.pipeline.cli_batch",
+                        "drift": "markcal.pipeline.cli_pmcal"}
+
+
+def build_parser(argv=None) -> argparse.ArgumentParser:
+    """The ``markcal`` parser. Given the command line, only the module of its command is imported when the
+    command is known (a command starts faster); otherwise, and for ``render`` and help, every module is."""
     from markcal.pipeline.cli_common import Parser
     from markcal.pipeline.registry import markcal_version
 
@@ -38,7 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
     rd = sub.add_parser("render", help="render synthetic instrument data with ground truth")
     rsub = rd.add_subparsers(dest="what", required=True, parser_class=Parser)
-    for name in COMMAND_MODULES:
+    first = next((a for a in (argv or []) if not a.startswith("-")), None) if argv else None
+    only = COMMAND_OWNERS.get(first) if argv and argv[0] == first else None
+    for name in (only,) if only else COMMAND_MODULES:
         importlib.import_module(name).register(sub, rsub)
     return ap
 
@@ -76,7 +89,7 @@ class _LogRecords(logging.Handler):
 
 def main(argv=None) -> int:
     _numba_cache()
-    args = build_parser().parse_args(argv)
+    args = build_parser(sys.argv[1:] if argv is None else argv).parse_args(argv)
     logs = _LogRecords()
     root = logging.getLogger()
     root.addHandler(logs)

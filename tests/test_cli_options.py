@@ -86,3 +86,19 @@ def test_usage_mistake_prints_through_the_one_error_printer(capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "unrecognized arguments: \\u202ec.csv (see markcal" in err[0], err
     assert "\u202e" not in err[0] and "\x1b" not in err[0]
+
+
+def test_a_known_command_imports_only_its_module_and_parses_as_the_full_parser():
+    import sys
+    from markcal.pipeline.cli import COMMAND_OWNERS
+    full = build_parser()
+    commands = set(full._subparsers._group_actions[0].choices)
+    assert set(COMMAND_OWNERS) == commands - {"render"}            # every command has its module
+    for cmd, module in COMMAND_OWNERS.items():
+        lazy = build_parser([cmd, "x"])
+        sub = lazy._subparsers._group_actions[0].choices
+        assert cmd in sub and set(sub) < commands                  # the command, and not every module's
+        assert sub[cmd].format_help() == full._subparsers._group_actions[0].choices[cmd].format_help()
+        assert module in sys.modules
+    with pytest.raises(SystemExit, match="1"):                     # an unknown command: the usual one-line error
+        build_parser(["scann"]).parse_args(["scann"])
