@@ -8,6 +8,7 @@ batch index lists the flows.
 from __future__ import annotations
 
 import importlib
+import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Callable
@@ -222,11 +223,16 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])     # once, before any work
     if clear_first:
         start_outputs(out_dir)
-    # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow runs
-    with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
-        digests = pool.submit(input_digests, input_path, spec_path)
-        result = d.run(input_path, spec_path, opts, progress)
-        digests = digests.result()
+    # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow runs,
+    # when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
+    paths = [p for p in (input_path, spec_path) if p]
+    if all(os.path.isfile(p) or os.path.isdir(p) for p in paths):
+        with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
+            digests = pool.submit(input_digests, input_path, spec_path)
+            result = d.run(input_path, spec_path, opts, progress)
+            digests = digests.result()
+    else:
+        result, digests = d.run(input_path, spec_path, opts, progress), None
     judge(name, result.summary, input_path, spec_path, tolerances, context, digests)
     if progress:
         progress("writing tables and report")
