@@ -1,7 +1,8 @@
 """Self-contained HTML report of one scan flow result (paper 004 Figs. 4, 7-9, Table 1).
 
 Everything is inline: CSS in a ``<style>`` block, figures as base64 PNG. The
-module draws with matplotlib's Agg canvas (no pyplot state, nothing to close);
+module draws with matplotlib's Agg canvas (no pyplot state, nothing to close; matplotlib is imported
+by the functions that draw, so that the two processes of ``parts_in_two`` import it side by side);
 the point cloud is projected with numpy (:mod:`markcal.reports.cloud_view`).
 It neither prints nor writes files; the caller stores the returned string.
 """
@@ -10,9 +11,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.colors import LogNorm
-from matplotlib.patches import Circle, Rectangle
-from matplotlib.ticker import MaxNLocator
 
 from markcal.reports.cloud_view import IsoView, splat
 from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, parts_in_two, png_b64,
@@ -147,6 +145,7 @@ def _bins(v: np.ndarray) -> int:
 
 
 def _histogram_figures(result) -> str:
+    from matplotlib.ticker import MaxNLocator
     f = result.fiducials
     dx, dy = np.asarray(f["dx_mm"], float), np.asarray(f["dy_mm"], float)
     mag = np.hypot(dx, dy)
@@ -213,6 +212,8 @@ def _stats_table(stats: dict) -> str:
 
 
 def _cv_figure(sel) -> str:
+    from matplotlib.colors import LogNorm
+    from matplotlib.patches import Rectangle
     cv_table = np.asarray(sel.table, float)
     spreads = np.asarray(sel.spreads_mm, float)
     goals = np.asarray(sel.goals_mm2, float)
@@ -432,6 +433,8 @@ def _crop(image, raster, uv, half_mm):
 
 
 def _fiducial_crops(result) -> str:
+    from matplotlib.patches import Circle
+    from matplotlib.ticker import MaxNLocator
     f = result.fiducials
     n = len(f["id"])
     if n == 0:
