@@ -6,11 +6,9 @@ the raw samples around each candidate (sub-pixel centres).
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
-import numba
 import numpy as np
 from numba import njit
 from scipy import ndimage
@@ -20,6 +18,7 @@ from skimage.transform import hough_circle
 
 from .project import Raster
 from .quantile import percentiles
+from .threads import map_on_threads, thread_count
 
 #: the fine ring fit uses the samples within this distance of the rings (mm)
 RING_BAND_MM = 0.3
@@ -269,17 +268,12 @@ def _gauss_newton(p, u, v, y, mask, radii, n_iter, free, huber_k=2.0):
     rad, fr = np.asarray(radii, float), np.asarray(free, float)
     scale = np.empty(len(p))
 
-    def rows(a, b):
+    def rows(ab):
+        a, b = ab
         scale[a:b] = _lm_rows(p[a:b], u[a:b], v[a:b], y[a:b], counts[a:b], rad, int(n_iter), fr, float(huber_k), sub)
 
-    # the kernel releases the GIL: blocks of rows on numba's thread count (1 in batch workers)
-    workers = min(len(p), max(1, int(numba.config.NUMBA_NUM_THREADS)))
-    cuts = np.linspace(0, len(p), workers + 1).astype(int)
-    if workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(rows, cuts[:-1], cuts[1:]))
-    else:
-        rows(0, len(p))
+    cuts = np.linspace(0, len(p), thread_count(len(p)) + 1).astype(int)     # one block of rows per thread
+    map_on_threads(rows, zip(cuts[:-1], cuts[1:]))         # the kernel releases the GIL
     return p, scale
 
 

@@ -8,14 +8,13 @@ is the mean over points and outputs of the squared error (mm^2), as newrb's.
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 from numba import njit
 
 from .errors import MarkcalError
+from .threads import map_on_threads
 
 
 @dataclass(frozen=True)
@@ -296,14 +295,7 @@ def select(x_mm, y_mm, spreads_mm, goals_mm2, folds: int = 5, seed: int = 0,
                 e = pred[m] - y[va]
                 sq[i, g, f] = np.sqrt(np.mean((e * e).sum(axis=1)))
 
-    # the compiled selection releases the GIL: spreads run on numba's thread count (1 in batch workers)
-    workers = min(len(spreads), max(1, int(numba.config.NUMBA_NUM_THREADS)))
-    if workers > 1:
-        with ThreadPoolExecutor(workers) as pool:
-            list(pool.map(one_spread, range(len(spreads))))
-    else:
-        for i in range(len(spreads)):
-            one_spread(i)
+    map_on_threads(one_spread, range(len(spreads)))     # the compiled selection releases the GIL
     mean = sq.mean(axis=2)
     i, g = np.unravel_index(int(np.argmin(mean)), mean.shape)
     return Selection(spread_mm=float(spreads[i]), mse_goal_mm2=float(goals[g]),
