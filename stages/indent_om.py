@@ -112,10 +112,13 @@ def _airy_kernel(psf_um, sub_um):
 #: lines on the edges, the facets' shading from light on one side (three contrasts between the
 #: quadrants of the dot's own frame: +-u, +-v, their product) and the darkness of the ridge lines.
 _OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
-_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "edge_line", "shade_u", "shade_v", "shade_uv", "ridge_line")
-_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0, 0.0])
-_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 1.5, 1.0, 1.0, 1.0, 1.5])
-_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
+_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "line", "shade_u", "shade_v", "shade_uv")
+_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0])
+_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 0.95, 1.0, 1.0, 1.0])
+_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4])
+#: Gaussian sigma (µm) of the dark crease lines: under the resolution, so their integrated darkness
+#: (darkness x width) is what the fit sees
+CREASE_W_UM = 0.06
 #: the plain model uses the first five shared parameters; the extended one (lines, one-sided
 #: shading) all of them
 _NS_PLAIN = 5
@@ -194,12 +197,14 @@ class _OmPatch:
         t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
         out = rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
         if len(s) > _NS_PLAIN:
-            line_w = max(0.6 * self.pixel_um, self.sub)                 # thin lines (the PSF widens them)
             su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
+            out = out - inside * (s[6] * su + s[7] * sv + s[8] * su * sv)
+            # creases (edges and ridges) absorb a fraction of the local light: one darkness for both
             edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
             ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
-            out = out - s[5] * np.exp(-0.5 * (edge / line_w) ** 2) \
-                - inside * (s[6] * su + s[7] * sv + s[8] * su * sv + s[9] * np.exp(-0.5 * (ridge / line_w) ** 2))
+            w2 = -0.5 / CREASE_W_UM ** 2
+            crease = np.maximum(np.exp(w2 * edge * edge), inside * np.exp(w2 * ridge * ridge))
+            out = (1.0 + out) * (1.0 - s[5] * crease) - 1.0
         return out
 
     def blur(self, dev, psf):
@@ -459,10 +464,10 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
     shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
     out-of-focus dust) are returned as None. With fewer than three candidates every dot is
-    fitted on its own (:func:`measure_om`). When the plain model leaves structure inside the dots
-    (median in-dot residual above ``EXTENDED_MISFIT`` noise levels: thin dark edge and ridge lines,
-    facets shaded from light on one side), everything is fitted again with those terms added to the
-    shared parameters; a dot that pass rejects keeps its plain fit.
+    fitted on its own (:func:`measure_om`). When the Bayesian information criterion on the typical
+    dots prefers it (:func:`_choose_model`), the shared model is extended: dark crease lines centred
+    on the edges and the ridges (one darkness for both; they absorb a fraction of the local light)
+    and facets shaded from light on one side (three contrasts between the quadrants).
 
     Parameters
     ----------
@@ -476,23 +481,63 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     """
     if len(candidates) < 3:
         return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
-    out, misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, _NS_PLAIN)
-    if misfit > EXTENDED_MISFIT:
-        # the plain model leaves structure in the dots (edge and ridge lines, facets shaded from
-        # one side): fit again with those terms, shared by the dots
-        ext, _m = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all,
-                                 len(_OM_SHARED))
-        # a dot the extended fit rejects (e.g. at a vignetted corner) keeps its plain fit
-        out = [e if e is not None else p for e, p in zip(ext, out)]
+    out, _misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None)
     return out
 
 
-#: median residual RMS inside the dots (in noise levels) above which the extended model is used
-EXTENDED_MISFIT = 1.25
+#: starting crease darkness of the extended model's joint fits (the cost has several minima along it)
+CREASE_STARTS = (0.05, 0.25, 0.5)
+
+
+def _choose_model(patches, g0, d0, s_plain, noise_rel):
+    """Plain or extended shared model for the typical dots.
+
+    The plain model is fitted, then the extended one (creases, one-sided shading) from a few
+    starting crease darknesses (the lowest residual wins) when the Bayesian information criterion
+    prefers it: ``N ln(SSR_plain / SSR_ext) > k ln N`` (N pixels, k = 4 extra parameters), SSR_ext
+    from one Gauss-Newton step of the extended model from the plain solution (cheap: no fit is
+    made for images the plain model describes).
+
+    Returns
+    -------
+    s : ndarray (shared parameters of the chosen model), g : ndarray (k, 7), extended : bool
+    """
+    s_p, g_p, res_p = _om_joint_fit(patches, g0, d0, s_plain, noise_rel)
+    n = sum(r.size for r in res_p)
+
+    def ext_fit(line0, max_nfev):
+        s0 = np.concatenate([s_p, [line0], np.zeros(len(_OM_SHARED) - _NS_PLAIN - 1)])
+        s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev)
+        return sum(float(np.sum(r * r)) for r in res_e), s_e, g_e
+
+    # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
+    # how much do its extra terms lower the residual?
+    ns, k = len(_OM_SHARED), len(patches)
+    s_lin = np.concatenate([s_p, np.zeros(ns - _NS_PLAIN)])
+    jm = np.zeros((n, ns + 7 * k))
+    rr = np.zeros(n)
+    o = 0
+    for i, (p, gi) in enumerate(zip(patches, g_p)):
+        m, jp = p.jac(gi, s_lin)
+        jm[o:o + m.size, 7 * i:7 * i + 7] = jp[:, :7]
+        jm[o:o + m.size, 7 * k:] = jp[:, 7:]
+        rr[o:o + m.size] = p.patch.ravel() - m
+        o += m.size
+    col = np.maximum(np.sqrt(np.sum(jm ** 2, axis=0)), 1e-30)
+    step = np.linalg.lstsq(jm / col, rr, rcond=1e-9)[0] / col
+    ssr_lin = float(np.sum((rr - jm @ step) ** 2))
+    ssr_p = float(np.sum(rr ** 2))
+    n_extra = ns - _NS_PLAIN
+    gain = n * np.log(ssr_p / max(ssr_lin, 1e-300)) / (n_extra * np.log(n))
+    if gain <= 1.0:
+        return s_p, g_p, False
+    best = min((ext_fit(line0, 40) for line0 in CREASE_STARTS), key=lambda b: b[0])
+    return best[1], best[2], True
 
 
 def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared):
-    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters.
+    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters (None: chosen by
+    :func:`_choose_model` on the typical dots).
 
     Returns the imprints (or None) and the median residual RMS inside the dots in noise levels.
     """
@@ -504,7 +549,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     out = [None] * len(candidates)
     if not ok:
         return out, 0.0
-    s = np.concatenate([_OM_S0, np.zeros(n_shared - len(_OM_S0))])
+    s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     starts = {i: patches[i].start(s) for i in ok}
     rad = np.array([patches[i].r_est for i in ok])
@@ -512,6 +557,12 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
     # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
     n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
+    if n_shared is None:
+        joint = order[:n_joint]
+        s, g, _ext = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                   [starts[i][1] for i in joint], s, noise_rel)
+        for i, gi in zip(joint, g):
+            starts[i] = (gi, starts[i][1])
     excluded = set()
     for _round in range(3):
         joint = [i for i in order if i not in excluded][:n_joint]
