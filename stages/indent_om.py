@@ -307,13 +307,15 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
     return s, g, res
 
 
-def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
     """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
 
     The normal equations have a block-arrow structure (each patch couples its seven own
     parameters only with the shared ones), solved through the Schur complement of the
     shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
     iteratively reweighted least squares; bounds by clipping.
+
+    ``pin`` = (index, value) holds one shared parameter at a value.
 
     Returns
     -------
@@ -326,6 +328,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
     g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
     ns = len(s)
     s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
+    if pin is not None:
+        s_lo[pin[0]] = s_hi[pin[0]] = pin[1]
     s = np.clip(np.array(s, dtype=float), s_lo, s_hi)
     targets = [p.patch.ravel() for p in patches]
 
@@ -485,15 +489,17 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     return out
 
 
-#: starting crease darkness of the extended model's joint fits (the cost has several minima along it)
-CREASE_STARTS = (0.05, 0.25, 0.5)
+#: starting crease darkness of the extended model's joint fit on the typical dots
+CREASE_START = 0.25
+#: crease darknesses of the profile over every dot (:func:`_om_array_pass`)
+CREASE_PROFILE = (0.0, 0.15, 0.3, 0.45, 0.6)
 
 
 def _choose_model(patches, g0, d0, s_plain, noise_rel):
     """Plain or extended shared model for the typical dots.
 
-    The plain model is fitted, then the extended one (creases, one-sided shading) from a few
-    starting crease darknesses (the lowest residual wins) when the Bayesian information criterion
+    The plain model is fitted, then the extended one (creases, one-sided shading) when the Bayesian
+    information criterion
     prefers it: ``N ln(SSR_plain / SSR_ext) > k ln N`` (N pixels, k = 4 extra parameters), SSR_ext
     from one Gauss-Newton step of the extended model from the plain solution (cheap: no fit is
     made for images the plain model describes).
@@ -531,8 +537,8 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel):
     gain = n * np.log(ssr_p / max(ssr_lin, 1e-300)) / (n_extra * np.log(n))
     if gain <= 1.0:
         return s_p, g_p, False
-    best = min((ext_fit(line0, 40) for line0 in CREASE_STARTS), key=lambda b: b[0])
-    return best[1], best[2], True
+    _ssr, s_e, g_e = ext_fit(CREASE_START, 40)
+    return s_e, g_e, True
 
 
 def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared):
@@ -586,8 +592,21 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     good = [i for i in ok if fits[i][3] <= limit]
     misfit = float(np.median([fits[i][3] for i in good])) / max(noise_rel, 1e-12)
     if refine_all and len(good) > len(joint):
-        s, g, res = _om_block_fit([patches[i] for i in good], [fits[i][0] for i in good],
-                                  [starts[i][1] for i in good], s, noise_rel)
+        bp, bg0, bd = [patches[i] for i in good], [fits[i][0] for i in good], [starts[i][1] for i in good]
+        if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1:
+            # on small dots (< 16 px) the crease darkness is weakly determined (a line on the edge
+            # looks like a wider dot, the ridges are short): profile it over every dot, a few steps
+            # at each of a few values, then free it
+            f = max(3 * noise_rel, 0.005)
+            best = None
+            for line in CREASE_PROFILE:
+                sp, gp, rp = _om_block_fit(bp, bg0, bd, np.where(np.arange(len(s)) == _NS_PLAIN, line, s), noise_rel,
+                                           n_iter=4, pin=(_NS_PLAIN, line))
+                c = float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in rp))
+                if best is None or c < best[0]:
+                    best = (c, sp, gp)
+            s, bg0 = best[1], list(best[2])
+        s, g, res = _om_block_fit(bp, bg0, bd, s, noise_rel)
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
