@@ -135,7 +135,9 @@ class _OmPatch:
 
     The model is evaluated on a 2x finer grid: relative reflectance (background 1) of a
     diamond of diagonal ``d``, darker to the floor, with a bright rim ``rim t^2 exp(2 (1 - t))``,
-    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge; blurred by an Airy PSF
+    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge (extended model: each
+    facet's own brightness, darker to the floor by a fraction of it, and dark crease lines centred on
+    the edges and ridges that take a fraction of the local light); blurred by an Airy PSF
     and averaged over each pixel (one FFT convolution with the PSF folded with the 2 x 2 pixel
     box, its transform cached per PSF), times a linear background.
     """
@@ -195,17 +197,18 @@ class _OmPatch:
         rho = (np.abs(u) + np.abs(v)) / half
         inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
         t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
-        out = rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
-        if len(s) > _NS_PLAIN:
-            su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
-            out = out - inside * (s[6] * su + s[7] * sv + s[8] * su * sv)
-            # creases (edges and ridges) absorb a fraction of the local light: one darkness for both
-            edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
-            ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
-            w2 = -0.5 / CREASE_W_UM ** 2
-            crease = np.maximum(np.exp(w2 * edge * edge), inside * np.exp(w2 * ridge * ridge))
-            out = (1.0 + out) * (1.0 - s[5] * crease) - 1.0
-        return out
+        if len(s) <= _NS_PLAIN:
+            return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+        su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
+        # each facet's own brightness (one-sided light), darker towards the floor by a fraction of it
+        facet = (1.0 - dark0 - s[6] * su - s[7] * sv - s[8] * su * sv) * (1.0 - dark1 * np.clip(1 - rho, 0, 1))
+        out = rim * t * t * np.exp(2 * (1 - t)) + inside * (facet - 1.0)
+        # creases (edges and ridges) absorb a fraction of the local light: one darkness for both
+        edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
+        ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
+        w2 = -0.5 / CREASE_W_UM ** 2
+        crease = np.maximum(np.exp(w2 * edge * edge), inside * np.exp(w2 * ridge * ridge))
+        return (1.0 + out) * (1.0 - s[5] * crease) - 1.0
 
     def blur(self, dev, psf):
         """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
