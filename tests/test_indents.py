@@ -400,7 +400,7 @@ def test_om_array_with_lines_and_one_sided_shading():
     """An OM array drawn by the micrograph renderer (dark edge and ridge lines, facets shaded from one
     side, halo, vignetting), 3 µm: the information criterion picks the extended model (creases and
     shading). The plain model was +119..+138 nm on the diagonal with a 30 nm centre bias; measured now
-    -31..-11 nm, centre RMS 4.9 nm, bias 2.6 nm."""
+    -32..-12 nm, centre RMS 4.7 nm, bias 2.1 nm."""
     e, extended = _hard_om_errors(5000, 3.0, 320)
     assert extended
     assert np.all(np.abs(e[:, 2]) <= 55.0)
@@ -410,10 +410,10 @@ def test_om_array_with_lines_and_one_sided_shading():
 
 def test_om_1um_array_with_lines_and_one_sided_shading():
     """The same at 1 µm (10 px): the lines on the edges are told from a wider dot only through the ridge
-    lines (one crease darkness for both). Measured (seed 5001): d -8.8..+21.7 nm, centre RMS 7.0 nm,
-    bias 2.8 nm; the plain model was about +95 nm with a 22 nm bias."""
+    lines (one crease darkness for both). Measured (seed 5001): d +4..+35 nm, centre RMS 6.6 nm,
+    bias 0.5 nm; the plain model was about +95 nm with a 22 nm bias."""
     e, extended = _hard_om_errors(5001, 1.0, 240)
     assert extended
-    assert np.all(np.abs(e[:, 2]) <= 40.0)
+    assert np.all(np.abs(e[:, 2]) <= 55.0)
     assert np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)) <= 12.0
-    assert np.all(np.abs(e[:, :2].mean(axis=0)) <= 5.0)
+    assert np.all(np.abs(e[:, :2].mean(axis=0)) <= 3.0)
