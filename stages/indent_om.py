@@ -498,6 +498,17 @@ CREASE_START = 0.25
 CREASE_PROFILE = (0.0, 0.15, 0.3, 0.45, 0.6)
 
 
+def _extended(s_plain):
+    """Extended-model shared parameters that draw the same dots as the plain ones ``s_plain``.
+
+    Plain interior 1 - dark0 - dark1 (1 - rho); extended (1 - dark0) (1 - dark1' (1 - rho)), no
+    creases, no shading.
+    """
+    s = np.concatenate([s_plain, np.zeros(len(_OM_SHARED) - _NS_PLAIN)])
+    s[1] = s_plain[1] / max(1.0 - s_plain[0], 1e-6)
+    return s
+
+
 def _choose_model(patches, g0, d0, s_plain, noise_rel):
     """Plain or extended shared model for the typical dots.
 
@@ -515,14 +526,15 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel):
     n = sum(r.size for r in res_p)
 
     def ext_fit(line0, max_nfev):
-        s0 = np.concatenate([s_p, [line0], np.zeros(len(_OM_SHARED) - _NS_PLAIN - 1)])
+        s0 = _extended(s_p)
+        s0[_NS_PLAIN] = line0
         s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev)
         return sum(float(np.sum(r * r)) for r in res_e), s_e, g_e
 
     # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
     # how much do its extra terms lower the residual?
     ns, k = len(_OM_SHARED), len(patches)
-    s_lin = np.concatenate([s_p, np.zeros(ns - _NS_PLAIN)])
+    s_lin = _extended(s_p)
     jm = np.zeros((n, ns + 7 * k))
     rr = np.zeros(n)
     o = 0
