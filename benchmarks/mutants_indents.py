@@ -103,8 +103,8 @@ MUTANTS_INDENTS = [
     {   # the extended OM model (edge and ridge lines, one-sided shading) never switched on
         "name": "om-extended-never",
         "file": "stages/indent_om.py",
-        "old": "    if misfit > EXTENDED_MISFIT:\n",
-        "new": "    if misfit > 1e9 * EXTENDED_MISFIT:\n",
+        "old": "    if gain <= 1.0:\n",
+        "new": "    if gain <= 1e9:\n",
         "tests": ["tests/test_indents.py::test_om_array_with_lines_and_one_sided_shading"],
     },
 ]

@@ -12,10 +12,11 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 from scipy import fft as sfft
-from scipy.optimize import least_squares
 from scipy.special import j1
 
 from .indent_geometry import Imprint, diagonals as _diagonals
+from .indent_om_fit import (_NS_PLAIN, _OM_OWN_STEP, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
+                            _om_block_fit, _om_joint_fit, _om_own_fit)
 
 __all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array"]
 
@@ -105,34 +106,14 @@ def _airy_kernel(psf_um, sub_um):
     return k / k.sum()
 
 
-#: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
-#: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
-#: material): interior darkness at the edge and its increase to the floor, rim height and width
-#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm); then the darkness of thin
-#: lines on the edges, the facets' shading from light on one side (three contrasts between the
-#: quadrants of the dot's own frame: +-u, +-v, their product) and the darkness of the ridge lines.
-_OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
-_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "edge_line", "shade_u", "shade_v", "shade_uv", "ridge_line")
-_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0, 0.0])
-_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 1.5, 1.0, 1.0, 1.0, 1.5])
-_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4, 1e-4])
-#: the plain model uses the first five shared parameters; the extended one (lines, one-sided
-#: shading) all of them
-_NS_PLAIN = 5
-
-
-def _dev_shared(ns):
-    """Shared parameters that change the fine-grid reflectance: all but the PSF (index 4)."""
-    return [j for j in range(ns) if j != 4]
-_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
-
-
 class _OmPatch:
     """One dot's patch (grey values / illumination) and its image model.
 
     The model is evaluated on a 2x finer grid: relative reflectance (background 1) of a
     diamond of diagonal ``d``, darker to the floor, with a bright rim ``rim t^2 exp(2 (1 - t))``,
-    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge; blurred by an Airy PSF
+    t = (rho - 1) / rim_w, rho = (|u| + |v|) / (d / 2), anti-aliased edge (extended model: each
+    facet's own brightness, darker to the floor by a fraction of it, and dark crease lines centred on
+    the edges and ridges that take a fraction of the local light); blurred by an Airy PSF
     and averaged over each pixel (one FFT convolution with the PSF folded with the 2 x 2 pixel
     box, its transform cached per PSF), times a linear background.
     """
@@ -192,15 +173,18 @@ class _OmPatch:
         rho = (np.abs(u) + np.abs(v)) / half
         inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
         t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
-        out = rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
-        if len(s) > _NS_PLAIN:
-            line_w = max(0.6 * self.pixel_um, self.sub)                 # thin lines (the PSF widens them)
-            su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
-            edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
-            ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
-            out = out - s[5] * np.exp(-0.5 * (edge / line_w) ** 2) \
-                - inside * (s[6] * su + s[7] * sv + s[8] * su * sv + s[9] * np.exp(-0.5 * (ridge / line_w) ** 2))
-        return out
+        if len(s) <= _NS_PLAIN:
+            return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
+        su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
+        # each facet's own brightness (one-sided light), darker towards the floor by a fraction of it
+        facet = (1.0 - dark0 - s[6] * su - s[7] * sv - s[8] * su * sv) * (1.0 - dark1 * np.clip(1 - rho, 0, 1))
+        out = rim * t * t * np.exp(2 * (1 - t)) + inside * (facet - 1.0)
+        # creases (edges and ridges) absorb a fraction of the local light: one darkness for both
+        edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
+        ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
+        w2 = -0.5 / CREASE_W_UM ** 2
+        crease = np.maximum(np.exp(w2 * edge * edge), inside * np.exp(w2 * ridge * ridge))
+        return (1.0 + out) * (1.0 - s[5] * crease) - 1.0
 
     def blur(self, dev, psf):
         """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
@@ -255,143 +239,6 @@ class _OmPatch:
         pix = self.blur(np.stack([self.dev(g, s) for g in gs]), s[4])
         cost = [np.sum(((1 + p) - self.patch) ** 2) for p in pix]
         return gs[int(np.argmin(cost))], d0
-
-
-def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
-    """Fit the shared parameters and every patch's own parameters jointly (robust loss).
-
-    The Jacobian is built block by block: a patch depends only on its own seven parameters
-    and the shared ones.
-    """
-    k = len(patches)
-    ns = len(s0)
-    sizes = [p.patch.size for p in patches]
-    offs = np.concatenate([[0], np.cumsum(sizes)])
-    target = np.concatenate([p.patch.ravel() for p in patches])
-    lo = [_OM_SHARED_LO[:ns]]
-    hi = [_OM_SHARED_HI[:ns]]
-    for p, d in zip(patches, d0):
-        a, b = p.own_bounds(d)
-        lo.append(a)
-        hi.append(b)
-    lo, hi = np.concatenate(lo), np.concatenate(hi)
-    x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
-
-    def split(x):
-        return x[:ns], x[ns:].reshape(k, 7)
-
-    def fun(x):
-        s, g = split(x)
-        return np.concatenate([p.model(g[i], s).ravel() for i, p in enumerate(patches)]) - target
-
-    def jac(x):
-        s, g = split(x)
-        jm = np.zeros((offs[-1], x.size))
-        for i, p in enumerate(patches):
-            _m, jp = p.jac(g[i], s)
-            rows = slice(offs[i], offs[i + 1])
-            jm[rows, ns + 7 * i:ns + 7 + 7 * i] = jp[:, :7]
-            jm[rows, :ns] = jp[:, 7:]
-        return jm
-
-    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (ns - 5), np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
-    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=scale, max_nfev=max_nfev)
-    s, g = split(r.x)
-    res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
-    return s, g, res
-
-
-def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20):
-    """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
-
-    The normal equations have a block-arrow structure (each patch couples its seven own
-    parameters only with the shared ones), solved through the Schur complement of the
-    shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
-    iteratively reweighted least squares; bounds by clipping.
-
-    Returns
-    -------
-    s : ndarray (shared,), g : ndarray (k, 7), res : list of residual arrays
-    """
-    f = max(3 * noise_rel, 0.005)
-    bounds = [p.own_bounds(d) for p, d in zip(patches, d0)]
-    lo_g = np.array([b[0] for b in bounds]) + 1e-9
-    hi_g = np.array([b[1] for b in bounds]) - 1e-9
-    g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
-    ns = len(s)
-    s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
-    s = np.clip(np.array(s, dtype=float), s_lo, s_hi)
-    targets = [p.patch.ravel() for p in patches]
-
-    def cost_of(res):
-        return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
-
-    lam = 1e-3
-    res = None
-    for _it in range(n_iter):
-        U, W, ga = [], [], []
-        V = np.zeros((ns, ns))
-        gb = np.zeros(ns)
-        res = []
-        for i, p in enumerate(patches):
-            m, jm = p.jac(g[i], s)
-            r = m - targets[i]
-            res.append(r)
-            w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
-            a, b = jm[:, :7], jm[:, 7:]
-            aw, bw = a * w[:, None], b * w[:, None]
-            U.append(a.T @ aw)
-            W.append(aw.T @ b)
-            ga.append(aw.T @ r)
-            V += b.T @ bw
-            gb += bw.T @ r
-        cost = cost_of(res)
-        improved = False
-        for _try in range(5):
-            uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
-            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(ns)
-            rhs = gb.copy()
-            for ui, wi, gi in zip(uinv, W, ga):
-                S -= wi.T @ ui @ wi
-                rhs -= wi.T @ ui @ gi
-            ds = -np.linalg.solve(S, rhs)
-            dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
-            s_new = np.clip(s + ds, s_lo, s_hi)
-            g_new = np.clip(g + dg, lo_g, hi_g)
-            res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
-            c_new = cost_of(res_new)
-            if c_new < cost:
-                improved = True
-                break
-            lam *= 4.0
-        if not improved:
-            break
-        rel = (cost - c_new) / max(cost, 1e-30)
-        s, g, res = s_new, g_new, res_new
-        lam = max(lam / 3.0, 1e-7)
-        if rel < 1e-6:
-            break
-    if res is None:
-        res = [p.model(g[i], s).ravel() - targets[i] for i, p in enumerate(patches)]
-    return s, g, res
-
-
-def _om_own_fit(p, g0, d0, s, noise_rel, max_nfev=40):
-    """Fit one patch's own parameters with the shared ones fixed."""
-    lo, hi = p.own_bounds(d0)
-    target = p.patch.ravel()
-    x0 = np.clip(g0, lo + 1e-9, hi - 1e-9)
-
-    def fun(g):
-        return p.model(g, s).ravel() - target
-
-    def jac(g):
-        return p.jac(g, s, shared=False)[1]
-
-    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001]), max_nfev=max_nfev)
-    return r.x, r.fun
 
 
 def _om_imprint(g, s, res, n_pixels):
@@ -459,10 +306,10 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     this removes the size-versus-darkness ambiguity of a barely resolved dot. Dots that the
     shared model does not describe (residual > 3 x the median and > 3 noise levels, e.g.
     out-of-focus dust) are returned as None. With fewer than three candidates every dot is
-    fitted on its own (:func:`measure_om`). When the plain model leaves structure inside the dots
-    (median in-dot residual above ``EXTENDED_MISFIT`` noise levels: thin dark edge and ridge lines,
-    facets shaded from light on one side), everything is fitted again with those terms added to the
-    shared parameters; a dot that pass rejects keeps its plain fit.
+    fitted on its own (:func:`measure_om`). When the Bayesian information criterion on the typical
+    dots prefers it (:func:`_choose_model`), the shared model is extended: dark crease lines centred
+    on the edges and the ridges (one darkness for both; they absorb a fraction of the local light)
+    and facets shaded from light on one side (three contrasts between the quadrants).
 
     Parameters
     ----------
@@ -476,23 +323,77 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     """
     if len(candidates) < 3:
         return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
-    out, misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, _NS_PLAIN)
-    if misfit > EXTENDED_MISFIT:
-        # the plain model leaves structure in the dots (edge and ridge lines, facets shaded from
-        # one side): fit again with those terms, shared by the dots
-        ext, _m = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all,
-                                 len(_OM_SHARED))
-        # a dot the extended fit rejects (e.g. at a vignetted corner) keeps its plain fit
-        out = [e if e is not None else p for e, p in zip(ext, out)]
+    out, _misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None)
     return out
 
 
-#: median residual RMS inside the dots (in noise levels) above which the extended model is used
-EXTENDED_MISFIT = 1.25
+#: starting crease darkness of the extended model's joint fit on the typical dots
+CREASE_START = 0.25
+#: crease darknesses of the profile over every dot (:func:`_om_array_pass`)
+CREASE_PROFILE = (0.0, 0.15, 0.3, 0.45, 0.6)
+
+
+def _extended(s_plain):
+    """Extended-model shared parameters that draw the same dots as the plain ones ``s_plain``.
+
+    Plain interior 1 - dark0 - dark1 (1 - rho); extended (1 - dark0) (1 - dark1' (1 - rho)), no
+    creases, no shading.
+    """
+    s = np.concatenate([s_plain, np.zeros(len(_OM_SHARED) - _NS_PLAIN)])
+    s[1] = s_plain[1] / max(1.0 - s_plain[0], 1e-6)
+    return s
+
+
+def _choose_model(patches, g0, d0, s_plain, noise_rel):
+    """Plain or extended shared model for the typical dots.
+
+    The plain model is fitted, then the extended one (creases, one-sided shading) when the Bayesian
+    information criterion
+    prefers it: ``N ln(SSR_plain / SSR_ext) > k ln N`` (N pixels, k = 4 extra parameters), SSR_ext
+    from one Gauss-Newton step of the extended model from the plain solution (cheap: no fit is
+    made for images the plain model describes).
+
+    Returns
+    -------
+    s : ndarray (shared parameters of the chosen model), g : ndarray (k, 7), extended : bool
+    """
+    s_p, g_p, res_p = _om_joint_fit(patches, g0, d0, s_plain, noise_rel)
+    n = sum(r.size for r in res_p)
+
+    def ext_fit(line0, max_nfev):
+        s0 = _extended(s_p)
+        s0[_NS_PLAIN] = line0
+        s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev)
+        return sum(float(np.sum(r * r)) for r in res_e), s_e, g_e
+
+    # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
+    # how much do its extra terms lower the residual?
+    ns, k = len(_OM_SHARED), len(patches)
+    s_lin = _extended(s_p)
+    jm = np.zeros((n, ns + 7 * k))
+    rr = np.zeros(n)
+    o = 0
+    for i, (p, gi) in enumerate(zip(patches, g_p)):
+        m, jp = p.jac(gi, s_lin)
+        jm[o:o + m.size, 7 * i:7 * i + 7] = jp[:, :7]
+        jm[o:o + m.size, 7 * k:] = jp[:, 7:]
+        rr[o:o + m.size] = p.patch.ravel() - m
+        o += m.size
+    col = np.maximum(np.sqrt(np.sum(jm ** 2, axis=0)), 1e-30)
+    step = np.linalg.lstsq(jm / col, rr, rcond=1e-9)[0] / col
+    ssr_lin = float(np.sum((rr - jm @ step) ** 2))
+    ssr_p = float(np.sum(rr ** 2))
+    n_extra = ns - _NS_PLAIN
+    gain = n * np.log(ssr_p / max(ssr_lin, 1e-300)) / (n_extra * np.log(n))
+    if gain <= 1.0:
+        return s_p, g_p, False
+    _ssr, s_e, g_e = ext_fit(CREASE_START, 40)
+    return s_e, g_e, True
 
 
 def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared):
-    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters.
+    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters (None: chosen by
+    :func:`_choose_model` on the typical dots).
 
     Returns the imprints (or None) and the median residual RMS inside the dots in noise levels.
     """
@@ -504,7 +405,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     out = [None] * len(candidates)
     if not ok:
         return out, 0.0
-    s = np.concatenate([_OM_S0, np.zeros(n_shared - len(_OM_S0))])
+    s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     starts = {i: patches[i].start(s) for i in ok}
     rad = np.array([patches[i].r_est for i in ok])
@@ -512,6 +413,12 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
     # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
     n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
+    if n_shared is None:
+        joint = order[:n_joint]
+        s, g, _ext = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                   [starts[i][1] for i in joint], s, noise_rel)
+        for i, gi in zip(joint, g):
+            starts[i] = (gi, starts[i][1])
     excluded = set()
     for _round in range(3):
         joint = [i for i in order if i not in excluded][:n_joint]
@@ -535,8 +442,21 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     good = [i for i in ok if fits[i][3] <= limit]
     misfit = float(np.median([fits[i][3] for i in good])) / max(noise_rel, 1e-12)
     if refine_all and len(good) > len(joint):
-        s, g, res = _om_block_fit([patches[i] for i in good], [fits[i][0] for i in good],
-                                  [starts[i][1] for i in good], s, noise_rel)
+        bp, bg0, bd = [patches[i] for i in good], [fits[i][0] for i in good], [starts[i][1] for i in good]
+        if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1:
+            # on small dots (< 16 px) the crease darkness is weakly determined (a line on the edge
+            # looks like a wider dot, the ridges are short): profile it over every dot, a few steps
+            # at each of a few values, then free it
+            f = max(3 * noise_rel, 0.005)
+            best = None
+            for line in CREASE_PROFILE:
+                sp, gp, rp = _om_block_fit(bp, bg0, bd, np.where(np.arange(len(s)) == _NS_PLAIN, line, s), noise_rel,
+                                           n_iter=4, pin=(_NS_PLAIN, line))
+                c = float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in rp))
+                if best is None or c < best[0]:
+                    best = (c, sp, gp)
+            s, bg0 = best[1], list(best[2])
+        s, g, res = _om_block_fit(bp, bg0, bd, s, noise_rel)
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:

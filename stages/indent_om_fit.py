@@ -1,0 +1,177 @@
+"""Least-squares fits of the OM dot model (:mod:`.indent_om`): its parameter tables and three solvers.
+
+- :func:`_om_joint_fit`: shared and own parameters of a few dots together (dense, scipy);
+- :func:`_om_block_fit`: the same for every dot of a micrograph (block-arrow normal equations);
+- :func:`_om_own_fit`: one dot's own parameters, the shared ones fixed.
+
+The solvers only call the patch's ``model``, ``jac`` and ``own_bounds``.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import least_squares
+
+#: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
+#: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
+#: material): interior darkness at the edge and its increase to the floor, rim height and width
+#: (in units of the half-diagonal), PSF (Gaussian-equivalent sigma, µm); the extended model adds
+#: the darkness of the crease lines on the edges and ridges and the facets' shading from light on
+#: one side (three contrasts between the quadrants of the dot's own frame: +-u, +-v, their product).
+_OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
+_OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "line", "shade_u", "shade_v", "shade_uv")
+_OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0])
+_OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 0.95, 1.0, 1.0, 1.0])
+_OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4])
+#: Gaussian sigma (µm) of the dark crease lines: under the resolution, so their integrated darkness
+#: (darkness x width) is what the fit sees
+CREASE_W_UM = 0.06
+#: the plain model uses the first five shared parameters; the extended one (lines, one-sided
+#: shading) all of them
+_NS_PLAIN = 5
+
+
+def _dev_shared(ns):
+    """Shared parameters that change the fine-grid reflectance: all but the PSF (index 4)."""
+    return [j for j in range(ns) if j != 4]
+_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
+
+
+def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
+    """Fit the shared parameters and every patch's own parameters jointly (robust loss).
+
+    The Jacobian is built block by block: a patch depends only on its own seven parameters
+    and the shared ones.
+    """
+    k = len(patches)
+    ns = len(s0)
+    sizes = [p.patch.size for p in patches]
+    offs = np.concatenate([[0], np.cumsum(sizes)])
+    target = np.concatenate([p.patch.ravel() for p in patches])
+    lo = [_OM_SHARED_LO[:ns]]
+    hi = [_OM_SHARED_HI[:ns]]
+    for p, d in zip(patches, d0):
+        a, b = p.own_bounds(d)
+        lo.append(a)
+        hi.append(b)
+    lo, hi = np.concatenate(lo), np.concatenate(hi)
+    x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
+
+    def split(x):
+        return x[:ns], x[ns:].reshape(k, 7)
+
+    def fun(x):
+        s, g = split(x)
+        return np.concatenate([p.model(g[i], s).ravel() for i, p in enumerate(patches)]) - target
+
+    def jac(x):
+        s, g = split(x)
+        jm = np.zeros((offs[-1], x.size))
+        for i, p in enumerate(patches):
+            _m, jp = p.jac(g[i], s)
+            rows = slice(offs[i], offs[i + 1])
+            jm[rows, ns + 7 * i:ns + 7 + 7 * i] = jp[:, :7]
+            jm[rows, :ns] = jp[:, 7:]
+        return jm
+
+    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (ns - 5), np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=scale, max_nfev=max_nfev)
+    s, g = split(r.x)
+    res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
+    return s, g, res
+
+
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
+    """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
+
+    The normal equations have a block-arrow structure (each patch couples its seven own
+    parameters only with the shared ones), solved through the Schur complement of the
+    shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
+    iteratively reweighted least squares; bounds by clipping.
+
+    ``pin`` = (index, value) holds one shared parameter at a value.
+
+    Returns
+    -------
+    s : ndarray (shared,), g : ndarray (k, 7), res : list of residual arrays
+    """
+    f = max(3 * noise_rel, 0.005)
+    bounds = [p.own_bounds(d) for p, d in zip(patches, d0)]
+    lo_g = np.array([b[0] for b in bounds]) + 1e-9
+    hi_g = np.array([b[1] for b in bounds]) - 1e-9
+    g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
+    ns = len(s)
+    s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
+    if pin is not None:
+        s_lo[pin[0]] = s_hi[pin[0]] = pin[1]
+    s = np.clip(np.array(s, dtype=float), s_lo, s_hi)
+    targets = [p.patch.ravel() for p in patches]
+
+    def cost_of(res):
+        return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
+
+    lam = 1e-3
+    res = None
+    for _it in range(n_iter):
+        U, W, ga = [], [], []
+        V = np.zeros((ns, ns))
+        gb = np.zeros(ns)
+        res = []
+        for i, p in enumerate(patches):
+            m, jm = p.jac(g[i], s)
+            r = m - targets[i]
+            res.append(r)
+            w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
+            a, b = jm[:, :7], jm[:, 7:]
+            aw, bw = a * w[:, None], b * w[:, None]
+            U.append(a.T @ aw)
+            W.append(aw.T @ b)
+            ga.append(aw.T @ r)
+            V += b.T @ bw
+            gb += bw.T @ r
+        cost = cost_of(res)
+        improved = False
+        for _try in range(5):
+            uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
+            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(ns)
+            rhs = gb.copy()
+            for ui, wi, gi in zip(uinv, W, ga):
+                S -= wi.T @ ui @ wi
+                rhs -= wi.T @ ui @ gi
+            ds = -np.linalg.solve(S, rhs)
+            dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
+            s_new = np.clip(s + ds, s_lo, s_hi)
+            g_new = np.clip(g + dg, lo_g, hi_g)
+            res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
+            c_new = cost_of(res_new)
+            if c_new < cost:
+                improved = True
+                break
+            lam *= 4.0
+        if not improved:
+            break
+        rel = (cost - c_new) / max(cost, 1e-30)
+        s, g, res = s_new, g_new, res_new
+        lam = max(lam / 3.0, 1e-7)
+        if rel < 1e-6:
+            break
+    if res is None:
+        res = [p.model(g[i], s).ravel() - targets[i] for i, p in enumerate(patches)]
+    return s, g, res
+
+
+def _om_own_fit(p, g0, d0, s, noise_rel, max_nfev=40):
+    """Fit one patch's own parameters with the shared ones fixed."""
+    lo, hi = p.own_bounds(d0)
+    target = p.patch.ravel()
+    x0 = np.clip(g0, lo + 1e-9, hi - 1e-9)
+
+    def fun(g):
+        return p.model(g, s).ravel() - target
+
+    def jac(g):
+        return p.jac(g, s, shared=False)[1]
+
+    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
+                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001]), max_nfev=max_nfev)
+    return r.x, r.fun
