@@ -319,16 +319,29 @@ def _fork_helps() -> bool:
 
 
 def _busy_cores() -> float:
-    """Cores busy now: the runnable tasks, this one included (Linux ``/proc/loadavg``), else the 1-minute load.
+    """Cores busy now: this process plus the runnable tasks of other processes (Linux ``/proc``), else the
+    1-minute load.
 
     The 1-minute load remembers the last minute (a command run right after another sees its load);
-    the runnable count says whether a core is free at this moment.
+    the runnable count says whether a core is free at this moment. This process's own threads are not
+    counted: a BLAS or OpenCV worker still spinning after its last call is no other work.
     """
     try:
         with open("/proc/loadavg", encoding="ascii") as fh:
-            return float(fh.read().split()[3].split("/")[0])
+            running = float(fh.read().split()[3].split("/")[0])
+        return running - max(_own_running_threads(), 1) + 1
     except (OSError, IndexError, ValueError):
         return os.getloadavg()[0]
+
+
+def _own_running_threads() -> int:
+    """This process's threads that are runnable now (``/proc/self/task/*/stat`` state R)."""
+    own = 0
+    for tid in os.listdir("/proc/self/task"):
+        with open(f"/proc/self/task/{tid}/stat", encoding="ascii", errors="replace") as fh:
+            stat = fh.read()
+        own += stat[stat.rindex(")") + 2:][:1] == "R"
+    return own
 
 
 def img(b64: str, alt: str, caption: str) -> str:

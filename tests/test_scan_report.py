@@ -236,9 +236,18 @@ def test_busy_cores_counts_the_runnable_tasks_now(monkeypatch, tmp_path):
     loadavg = tmp_path / "loadavg"
     loadavg.write_text("2.95 3.01 2.50 1/113 19021\n")            # a minute of load, but only this task runs now
     monkeypatch.setattr(builtins, "open", lambda f, *a, **k: real_open(loadavg if f == "/proc/loadavg" else f, *a, **k))
+    monkeypatch.setattr(html, "_own_running_threads", lambda: 1)
     assert html._busy_cores() == 1.0
+    monkeypatch.setattr(html, "_own_running_threads", lambda: 2)     # a BLAS worker of this process still spins
+    loadavg.write_text("0.10 0.20 0.30 2/113 19021\n")
+    assert html._busy_cores() == 1.0                               # it is not other work
+    monkeypatch.setattr(html, "_own_running_threads", lambda: 1)
     loadavg.write_text("0.10 0.20 0.30 3/113 19021\n")
     assert html._busy_cores() == 3.0
     loadavg.write_text("garbled\n")                                  # unreadable: the 1-minute load
     monkeypatch.setattr(os, "getloadavg", lambda: (1.5, 0.0, 0.0))
     assert html._busy_cores() == 1.5
+
+
+def test_own_running_threads_sees_the_calling_thread():
+    assert html._own_running_threads() >= 1                         # this thread runs while it reads /proc
