@@ -318,18 +318,27 @@ def _fork_helps() -> bool:
             and threading.active_count() == 1 and _busy_cores() < cores)
 
 
+#: samples of the runnable count, 1 ms apart, that :func:`_busy_cores` takes
+BUSY_SAMPLES = 5
+
+
 def _busy_cores() -> float:
     """Cores busy now: this process plus the runnable tasks of other processes (Linux ``/proc``), else the
     1-minute load.
 
     The 1-minute load remembers the last minute (a command run right after another sees its load);
-    the runnable count says whether a core is free at this moment. This process's own threads are not
-    counted: a BLAS or OpenCV worker still spinning after its last call is no other work.
+    the runnable count says whether a core is free at this moment (the fewest of :data:`BUSY_SAMPLES`).
+    This process's own threads are not counted: a BLAS or OpenCV worker still spinning after its last
+    call is no other work.
     """
     try:
-        with open("/proc/loadavg", encoding="ascii") as fh:
-            running = float(fh.read().split()[3].split("/")[0])
-        return running - max(_own_running_threads(), 1) + 1
+        seen = []
+        for _ in range(BUSY_SAMPLES):          # the fewest seen: a kernel thread waking for a moment is no load
+            with open("/proc/loadavg", encoding="ascii") as fh:
+                running = float(fh.read().split()[3].split("/")[0])
+            seen.append(running - max(_own_running_threads(), 1) + 1)
+            time.sleep(0.001)
+        return min(seen)
     except (OSError, IndexError, ValueError):
         return os.getloadavg()[0]
 
