@@ -58,3 +58,30 @@ def test_projection_cells_hold_the_mean_plate_position_and_intensity_of_their_po
         want = np.bincount(flat, vals, r.valid.size)[full] / n[full]
         np.testing.assert_allclose(got.ravel()[full], want, rtol=0, atol=1e-4)    # intensity is float32
     assert abs(r.u0_mm + 20) < 0.6 and abs(r.v0_mm + 20) < 0.6     # the raster starts at the points' edge
+
+
+def test_float32_cloud_is_read_exactly_and_projects_as_its_float64_copy(tmp_path):
+    # a float32 PLY stays float32 (lossless, half the memory); the plane fit and the projection give the
+    # same plane and raster as on a float64 copy of the same values
+    from markcal.reports.files import write_ply
+    from markcal.stages.io import read_cloud
+    from markcal.stages.plane import fit_plane
+    from markcal.stages.project import project
+    rng = np.random.default_rng(11)
+    plane = _plane([0.05, -0.03, 1.0], [1.0, 2.0, 30.0])
+    uv = rng.uniform(-40, 40, (300_000, 2))                        # above the percentiles' sorting threshold
+    xyz = plane.origin_mm + uv[:, :1] * plane.e_u + uv[:, 1:] * plane.e_v + rng.normal(0, 0.003, (300_000, 1)) * plane.normal
+    inten = rng.uniform(0, 1, 300_000)
+    write_ply(tmp_path / "c.ply", xyz.astype(np.float32), inten.astype(np.float32))
+    cloud = read_cloud(tmp_path / "c.ply")
+    assert cloud.xyz_mm.dtype == np.float32 and cloud.intensity.dtype == np.float32
+    np.testing.assert_array_equal(cloud.xyz_mm, xyz.astype(np.float32))
+    p32, p64 = fit_plane(cloud.xyz_mm), fit_plane(cloud.xyz_mm.astype(np.float64))
+    np.testing.assert_array_equal(p32.normal, p64.normal)
+    np.testing.assert_array_equal(p32.origin_mm, p64.origin_mm)
+    r32 = project(cloud.xyz_mm, cloud.intensity, p32, pixel_mm=0.5)
+    r64 = project(cloud.xyz_mm.astype(np.float64), cloud.intensity.astype(np.float64), p64, pixel_mm=0.5)
+    assert (r32.u0_mm, r32.v0_mm) == (r64.u0_mm, r64.v0_mm)
+    for a, b in ((r32.intensity, r64.intensity), (r32.u_mm, r64.u_mm), (r32.v_mm, r64.v_mm), (r32.valid, r64.valid)):
+        np.testing.assert_array_equal(a, b)
+    assert abs(p32.normal @ plane.normal) > 1 - 1e-8                 # and the plane is the true one
