@@ -49,8 +49,7 @@ def build_parser(argv=None) -> argparse.ArgumentParser:
     sub = ap.add_subparsers(dest="command", required=True, parser_class=Parser)
     rd = sub.add_parser("render", help="render synthetic instrument data with ground truth")
     rsub = rd.add_subparsers(dest="what", required=True, parser_class=Parser)
-    first = next((a for a in (argv or []) if not a.startswith("-")), None) if argv else None
-    only = COMMAND_OWNERS.get(first) if argv and argv[0] == first else None
+    only = COMMAND_OWNERS.get(argv[0]) if argv else None
     for name in (only,) if only else COMMAND_MODULES:
         importlib.import_module(name).register(sub, rsub)
     return ap

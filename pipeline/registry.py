@@ -220,13 +220,13 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     if d.needs_spec and not spec_path:
         raise MarkcalError("no spec file: expected <stem>.toml or the folder's default spec beside the input",
                            input_path)
-    check_out_dir(out_dir, [p for p in (input_path, spec_path) if p])     # once, before any work
+    inputs = [p for p in (input_path, spec_path) if p]
+    check_out_dir(out_dir, inputs)     # once, before any work
     if clear_first:
         start_outputs(out_dir)
     # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow runs,
     # when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
-    paths = [p for p in (input_path, spec_path) if p]
-    if all(os.path.isfile(p) or os.path.isdir(p) for p in paths):
+    if all(os.path.isfile(p) or os.path.isdir(p) for p in inputs):
         with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
             digests = pool.submit(input_digests, input_path, spec_path)
             result = d.run(input_path, spec_path, opts, progress)

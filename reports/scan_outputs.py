@@ -27,20 +27,15 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     """
     out = OutputFolder(out_dir)
     f = result.fiducials
-
-    def tables():
-        out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
-        out.csv("deviations.csv", deviations_table(f))
-        out.csv("correction_grid.csv", {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
-                                        "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
-        out.csv("corrected_targets.csv", result.targets)
-        out.json("model.json", _model_document(result))
-
+    out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
+    out.csv("deviations.csv", deviations_table(f))
+    out.csv("correction_grid.csv", {"x_mm": result.grid_xy_mm[:, 0], "y_mm": result.grid_xy_mm[:, 1],
+                                    "dx_mm": result.grid_dxy_mm[:, 0], "dy_mm": result.grid_dxy_mm[:, 1]})
+    out.csv("corrected_targets.csv", result.targets)
+    out.json("model.json", _model_document(result))
     if report:
         from markcal.reports.scan_report import scan_report_html      # here: matplotlib loads only for reports
-        out.text("report.html", scan_report_html(result, meanwhile=tables))     # tables while figures are drawn
-    else:
-        tables()
+        out.text("report.html", scan_report_html(result))
     return out.finish(result.summary)
 
 

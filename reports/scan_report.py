@@ -511,15 +511,13 @@ def _footer() -> str:
 
 # ----------------------------------------------------------------------------- entry point
 
-def scan_report_html(result: "ScanResult", meanwhile=None) -> str:
+def scan_report_html(result: "ScanResult") -> str:
     """Render a scan flow result as one self-contained HTML page.
 
     Parameters
     ----------
     result : ScanResult
         What ``markcal.pipeline.flows.scan.run_scan`` returned.
-    meanwhile : callable, optional
-        Other work (the tables) done in this process while a forked child draws half of the figures.
 
     Returns
     -------
@@ -533,8 +531,8 @@ def scan_report_html(result: "ScanResult", meanwhile=None) -> str:
              else "markcal scan report — calibration plate")
     cloud = (lambda: "\n".join(_image_section(result))) if "image_pixel_mm" in s else (lambda: _render_3d(result))
     # the figures in two similar halves: the second in a forked process when a core is free (html.parts_in_two)
-    (_, quiver, hist, view), (model, crops) = parts_in_two(
-        [meanwhile or (lambda: None), lambda: _quiver_figure(result), lambda: _histogram_figures(result), cloud],
+    (quiver, hist, view), (model, crops) = parts_in_two(
+        [lambda: _quiver_figure(result), lambda: _histogram_figures(result), cloud],
         [lambda: _model_section(result), lambda: _fiducial_crops(result)])
     parts = [
         f'<div class="verdict">{_verdict(s, kind)}</div>',

@@ -58,7 +58,7 @@ def check_values(values, name: str, path=None, first_line: int | None = None, li
         return
     lim = max_abs_for(name) if limit is None else limit
     lo, hi = a.min(), a.max()            # two passes without temporaries; NaN comes through both
-    if -lim <= lo and hi <= lim and (lim < np.inf or (np.isfinite(lo) and np.isfinite(hi))):
+    if np.isfinite(lo) and np.isfinite(hi) and -lim <= lo and hi <= lim:
         return
     bad = ~np.isfinite(a) if a.dtype.kind == "f" else np.zeros(a.shape, bool)
     with np.errstate(invalid="ignore"):

@@ -79,7 +79,7 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
     origin, rot, max_h = np.asarray(plane.origin_mm, float), plane.rotation, float(max_height_mm)
     # the raster spans the 0.01-99.99 percentiles of the on-plane (u, v), read off every step-th point
     step = max(1, len(xyz) // EXTENT_SAMPLE)
-    u, v, _ = _on_plane_uv(xyz[::step], origin, rot, max_h, inten[::step], float(top), bool(drop_top))
+    u, v = _on_plane_uv(xyz[::step], origin, rot, max_h, inten[::step], float(top), bool(drop_top))
     if len(u) == 0:
         raise MarkcalError("fewer than 100 points lie on the plate plane")
     lo = np.array([percentiles(u, [0.01, 99.99]), percentiles(v, [0.01, 99.99])]).T
@@ -98,12 +98,12 @@ def project(xyz_mm: np.ndarray, intensity: np.ndarray, plane: Plane,
 
 @njit(cache=True, nogil=True)
 def _on_plane_uv(xyz, origin, rot, max_h, inten, top, drop_top):  # pragma: no cover - compiled
-    """In-plane (u, v) and intensity of the points within ``max_h`` of the plane (and below ``top`` when
-    ``drop_top``), in one pass and without an (n, 3) temporary."""
+    """In-plane (u, v) of the points within ``max_h`` of the plane (and below ``top`` when ``drop_top``), in
+    one pass and without an (n, 3) temporary. :func:`_bin_on_plane` repeats the selection and the rotation
+    inline: calling a shared compiled helper from both made the binning pass 30 % slower."""
     n = xyz.shape[0]
     u = np.empty(n)
     v = np.empty(n)
-    w = np.empty(n)
     m = 0
     for i in range(n):
         dx = xyz[i, 0] - origin[0]
@@ -113,9 +113,8 @@ def _on_plane_uv(xyz, origin, rot, max_h, inten, top, drop_top):  # pragma: no c
         if abs(h) < max_h and not (drop_top and inten[i] >= top):
             u[m] = dx * rot[0, 0] + dy * rot[0, 1] + dz * rot[0, 2]
             v[m] = dx * rot[1, 0] + dy * rot[1, 1] + dz * rot[1, 2]
-            w[m] = inten[i]
             m += 1
-    return u[:m], v[:m], w[:m]
+    return u[:m], v[:m]
 
 
 @njit(cache=True, nogil=True)
