@@ -30,10 +30,12 @@ CREASE_W_UM = 0.06
 _NS_PLAIN = 5
 
 
+_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
+
+
 def _dev_shared(ns):
     """Shared parameters that change the fine-grid reflectance: all but the PSF (index 4)."""
     return [j for j in range(ns) if j != 4]
-_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
 
 
 def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
