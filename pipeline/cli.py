@@ -138,7 +138,7 @@ def _run(args) -> int:
 
 
 #: youngest-generation threshold of the collector in a command's own process (Python's default is 700)
-GC_YOUNG_THRESHOLD = 100_000
+GC_YOUNG_THRESHOLD = 20_000
 
 
 def entry() -> None:
