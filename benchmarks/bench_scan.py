@@ -13,8 +13,11 @@ codes are compared with benchmarks/compare_outputs.py.
 
     python benchmarks/bench_scan.py [--runs 3] [--ref 5f2c370] [--cloud PLY --plate TOML]
 
-This code draws half of the report's figures in a forked process when a core is free (load below the
-core count); ``MARKCAL_REPORT_FORK=0 python benchmarks/bench_scan.py`` times it without.
+Both trees are byte-compiled first (``compileall``), as an installed package is: this machine sets
+PYTHONDONTWRITEBYTECODE, so without it every run would compile markcal's modules again (about 0.06 s).
+
+This code draws the report's figures in two drawing processes started before the flow, when a core is
+free (``reports/drawing.py``); ``MARKCAL_REPORT_FORK=0 python benchmarks/bench_scan.py`` times it without.
 """
 from __future__ import annotations
 
@@ -58,10 +61,17 @@ def cpu():   # this process and its reaped children (figures drawn in a forked c
     return sum(getattr(resource.getrusage(who), k) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
                for k in ("ru_utime", "ru_stime"))
 flow = get_flow("scan")
+try:                # this code: the drawing processes start before the flow, as in the command
+    from markcal.reports.drawing import start_drawing_processes, stop_drawing_processes
+except ImportError:  # older code: none
+    start_drawing_processes = stop_drawing_processes = lambda *a: None
+start_drawing_processes(2, getattr(flow, "drawing", ()))
 res = flow.descriptor.run(sys.argv[1], sys.argv[2], dict(flow.descriptor.options), None)
 c, w = cpu(), time.perf_counter()
 flow.write(res, sys.argv[3], report=True)
-print(time.perf_counter() - w, cpu() - c)
+t = time.perf_counter() - w
+stop_drawing_processes()     # reaped: their CPU time counts
+print(t, cpu() - c)
 """
 
 
@@ -127,6 +137,9 @@ def main():
     for d in ("pipeline", "stages", "fixtures", "reports"):
         shutil.copytree(os.path.join(REPO, d), os.path.join(here, d), ignore=shutil.ignore_patterns("__pycache__"))
     codes = {f"ref {args.ref}": ref_path, "this tree": os.path.dirname(here)}
+    # as installed: byte-compiled (pip does it; this machine's Python does not); compileall does not follow the
+    # reference tree's symbolic links, but its sources lie under tmp too
+    subprocess.run([sys.executable, "-m", "compileall", "-q", tmp], check=True, stdout=subprocess.DEVNULL)
     if ref_path is None:
         del codes[f"ref {args.ref}"]
     # the copy of this tree has no numba cache yet: one untimed run compiles its kernels (as the first run

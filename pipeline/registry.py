@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from markcal.pipeline.flows.descriptor import FlowDescriptor
+from markcal.reports.drawing import start_drawing_processes, stop_drawing_processes
 from markcal.reports.files import check_out_dir, start_outputs
 from markcal.stages.errors import MarkcalError
 from markcal.stages.verdict import FAIL, evaluate
@@ -25,28 +26,37 @@ class Flow:
 
     descriptor: FlowDescriptor
     write: Callable          # write(result, out_dir, report=True) -> {name: path}, summary.json last
+    drawing: tuple = ()      # report modules its drawing processes import while the flow runs (none: no processes)
 
     @property
     def name(self) -> str:
         return self.descriptor.name
 
 
-#: name -> (flow module exporting FLOW, "module:function" of its writer), in recognition order.
+#: drawing processes of a flow that asks for them (one per group of figures its report draws)
+DRAWING_PROCESSES = 2
+
+#: name -> (flow module exporting FLOW, "module:function" of its writer, drawing modules), in recognition order.
 #: Modules are imported when first asked for, so a single command loads only its own flow.
 REGISTERED: dict = {}
 _LOADED: dict = {}
 
 
-def register(name: str, flow_module: str, writer: str) -> None:
-    """Add (or replace) a flow: its module (exporting ``FLOW``) and its writer ``"module:function"``."""
-    REGISTERED[name] = (flow_module, writer)
+def register(name: str, flow_module: str, writer: str, drawing: tuple = ()) -> None:
+    """Add (or replace) a flow: its module (exporting ``FLOW``) and its writer ``"module:function"``.
+
+    ``drawing``: the report modules of a writer that draws through ``reports.drawing.draw_groups``;
+    its drawing processes start before the flow runs and import them meanwhile.
+    """
+    REGISTERED[name] = (flow_module, writer, tuple(drawing))
     _LOADED.pop(name, None)
 
 
 register("selfcal", "markcal.pipeline.flows.selfcal", "markcal.reports.selfcal_outputs:write_selfcal_outputs")
 register("servo", "markcal.pipeline.flows.servo", "markcal.reports.servo_outputs:write_servo_outputs")
 register("grid", "markcal.pipeline.flows.grid", "markcal.reports.grid_outputs:write_grid_outputs")
-register("scan", "markcal.pipeline.flows.scan", "markcal.reports.scan_outputs:write_scan_outputs")
+register("scan", "markcal.pipeline.flows.scan", "markcal.reports.scan_outputs:write_scan_outputs",
+         drawing=("markcal.reports.scan_report",))
 register("indents", "markcal.pipeline.flows.indents", "markcal.reports.indents_outputs:write_indents_outputs")
 register("path", "markcal.pipeline.flows.path", "markcal.reports.path_outputs:write_path_outputs")
 register("pmcal", "markcal.pipeline.flows.pmcal", "markcal.reports.pmcal_outputs:write_pmcal_outputs")
@@ -55,12 +65,12 @@ register("pmcal", "markcal.pipeline.flows.pmcal", "markcal.reports.pmcal_outputs
 def get_flow(name: str) -> Flow:
     """The registered flow ``name`` (imports its modules on first use)."""
     if name not in _LOADED:
-        flow_module, writer = REGISTERED[name]
+        flow_module, writer, drawing = REGISTERED[name]
         wmod, wfun = writer.split(":")
         descriptor = importlib.import_module(flow_module).FLOW
         if descriptor.name != name:
             raise ValueError(f"{flow_module}.FLOW is named {descriptor.name!r}, registered as {name!r}")
-        _LOADED[name] = Flow(descriptor, getattr(importlib.import_module(wmod), wfun))
+        _LOADED[name] = Flow(descriptor, getattr(importlib.import_module(wmod), wfun), drawing)
     return _LOADED[name]
 
 
@@ -224,19 +234,25 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     check_out_dir(out_dir, inputs)     # once, before any work
     if clear_first:
         start_outputs(out_dir)
-    # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow runs,
-    # when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
-    if all(os.path.isfile(p) or os.path.isdir(p) for p in inputs):
-        with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
-            digests = pool.submit(input_digests, input_path, spec_path)
-            result = d.run(input_path, spec_path, opts, progress)
-            digests = digests.result()
-    else:
-        result, digests = d.run(input_path, spec_path, opts, progress), None
-    judge(name, result.summary, input_path, spec_path, tolerances, context, digests)
-    if progress:
-        progress("writing tables and report")
-    paths = flow.write(result, out_dir, report=not opts.get("no_report", False))
+    report = not opts.get("no_report", False)
+    # the report's drawing processes import matplotlib while the flow computes (before any thread starts)
+    start_drawing_processes(DRAWING_PROCESSES if report and flow.drawing else 0, flow.drawing)
+    try:
+        # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow
+        # runs, when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
+        if all(os.path.isfile(p) or os.path.isdir(p) for p in inputs):
+            with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
+                digests = pool.submit(input_digests, input_path, spec_path)
+                result = d.run(input_path, spec_path, opts, progress)
+                digests = digests.result()
+        else:
+            result, digests = d.run(input_path, spec_path, opts, progress), None
+        judge(name, result.summary, input_path, spec_path, tolerances, context, digests)
+        if progress:
+            progress("writing tables and report")
+        paths = flow.write(result, out_dir, report=report)
+    finally:
+        stop_drawing_processes()
     return result, paths
 
 

@@ -9,12 +9,11 @@ import base64
 import contextvars
 import html
 import io
-import os
 import time
 
 import numpy as np
 
-__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "parts_in_two", "data_files_footer", "verdict_banner",
+__all__ = ["CSS", "DPI", "esc", "num", "new_figure", "nice_number", "png_b64", "img", "table", "page", "png_bytes", "figure_progress", "data_files_footer", "verdict_banner",
            "provenance_line", "arrow_key", "arrow_scale"]
 
 DPI = 100
@@ -182,7 +181,8 @@ def png_bytes(fig) -> bytes:
     The picture is what ``savefig(bbox_inches="tight")`` gives, without its second drawing pass: the
     tight box is measured on the drawn canvas and cut out of it. A figure with an artist beyond the
     canvas goes through ``savefig`` with the measured box (one more drawing); a see-through background
-    through ``savefig(bbox_inches="tight")``. The figure is cleared.
+    through ``savefig(bbox_inches="tight")``. The figure is left as it is (clearing it rebuilt every
+    axis' ticks, 10 % of a report's drawing time); the garbage collector frees it.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     canvas = fig.canvas
@@ -198,14 +198,12 @@ def png_bytes(fig) -> bytes:
         tol = 0.5 / DPI
         if tight.x0 >= -tol and tight.y0 >= -tol and tight.x1 <= w_in + tol and tight.y1 <= h_in + tol:
             data = _crop_png(np.asarray(canvas.buffer_rgba()), tight, h_in, fig.dpi)
-            fig.clear()
             _figure_drawn()
             return data
         box = tight.padded(PAD_PX / DPI)                 # measured: savefig need not lay the figure out again
     _drawable_texts(fig)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=DPI, bbox_inches=box, pil_kwargs={"compress_level": PNG_COMPRESS_LEVEL})
-    fig.clear()
     _figure_drawn()
     return buf.getvalue()
 
@@ -233,124 +231,8 @@ def _drawable_texts(fig) -> None:
 
 
 def png_b64(fig) -> str:
-    """Render ``fig`` to PNG (:func:`png_bytes`) and return it base64-encoded (the figure is cleared)."""
+    """Render ``fig`` to PNG (:func:`png_bytes`) and return it base64-encoded."""
     return base64.b64encode(png_bytes(fig)).decode("ascii")
-
-
-#: environment variable: "0" keeps every figure in this process; by default a report draws half of its
-#: figures in a forked process when a core is free (the 5.4 M-point scan: 3.8 s instead of 4.2 s wall at
-#: load 1.9 on 2 cores; it costs 0.15-0.4 s CPU more, so it is skipped when no core is free)
-FORK_ENV = "MARKCAL_REPORT_FORK"
-#: seconds the parent waits for the child's figures before drawing them itself
-FORK_TIMEOUT_S = 120.0
-
-
-def parts_in_two(here, there) -> tuple:
-    """Evaluate two lists of report parts (callables returning HTML): ``there`` in a forked child
-    process while this one does ``here``, when that can help; else both here, one after the other.
-
-    The child only draws and sends its strings back through a pipe, then ends (``os._exit``); the parent
-    always reaps it. A child that fails, sends nothing or takes longer than :data:`FORK_TIMEOUT_S`
-    is killed and its parts are drawn here, so an error comes out here, as it would without the
-    child. Not with ``MARKCAL_REPORT_FORK=0``, one core, a busy machine
-    (as many runnable tasks as cores, :func:`_busy_cores`) or other Python threads running.
-    """
-    if not _fork_helps():
-        return [f() for f in here], [f() for f in there]
-    import pickle
-    import select
-    import signal
-    import gc
-    r, w = os.pipe()
-    gc.freeze()                  # the collector leaves the objects both processes share alone: fewer page copies
-    try:
-        pid = os.fork()
-    except OSError:              # no memory or process slot for a child: all here
-        gc.unfreeze()
-        os.close(r)
-        os.close(w)
-        return [f() for f in here], [f() for f in there]
-    if pid == 0:                                          # the child: draw, send, end
-        code = 0
-        try:
-            os.close(r)
-            _FIGURE_PROGRESS.set(None)
-            data = pickle.dumps([f() for f in there])
-            with os.fdopen(w, "wb") as fh:
-                fh.write(data)
-        except BaseException:                             # noqa: BLE001 - the parent redraws; nothing printed
-            code = 1
-        finally:
-            os._exit(code)
-    gc.unfreeze()
-    os.close(w)
-    theirs = None
-    try:
-        mine = [f() for f in here]
-        chunks, deadline = [], time.monotonic() + FORK_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if select.select([r], [], [], max(deadline - time.monotonic(), 0.0))[0]:
-                chunk = os.read(r, 1 << 20)
-                if not chunk:
-                    break
-                chunks.append(chunk)
-        else:
-            os.kill(pid, signal.SIGKILL)
-            chunks = []
-        _, status = os.waitpid(pid, 0)
-        pid = 0
-        if chunks and os.waitstatus_to_exitcode(status) == 0:
-            theirs = pickle.loads(b"".join(chunks))
-    finally:
-        os.close(r)
-        if pid:                                           # this process failed while the child ran
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
-    if theirs is None:
-        theirs = [f() for f in there]
-    return mine, theirs
-
-
-def _fork_helps() -> bool:
-    import threading
-    cores = os.cpu_count() or 1
-    return (hasattr(os, "fork") and cores > 1 and os.environ.get(FORK_ENV, "1") != "0"
-            and threading.active_count() == 1 and _busy_cores() < cores)
-
-
-#: samples of the runnable count, 1 ms apart, that :func:`_busy_cores` takes
-BUSY_SAMPLES = 5
-
-
-def _busy_cores() -> float:
-    """Cores busy now: this process plus the runnable tasks of other processes (Linux ``/proc``), else the
-    1-minute load.
-
-    The 1-minute load remembers the last minute (a command run right after another sees its load);
-    the runnable count says whether a core is free at this moment (the fewest of :data:`BUSY_SAMPLES`).
-    This process's own threads are not counted: a BLAS or OpenCV worker still spinning after its last
-    call is no other work.
-    """
-    try:
-        seen = []
-        for _ in range(BUSY_SAMPLES):          # the fewest seen: a kernel thread waking for a moment is no load
-            with open("/proc/loadavg", encoding="ascii") as fh:
-                running = float(fh.read().split()[3].split("/")[0])
-            seen.append(running - max(_own_running_threads(), 1) + 1)
-            time.sleep(0.001)
-        return min(seen)
-    except (OSError, IndexError, ValueError):
-        return os.getloadavg()[0]
-
-
-def _own_running_threads() -> int:
-    """This process's threads that are runnable now (``/proc/self/task/*/stat`` state R)."""
-    own = 0
-    for tid in os.listdir("/proc/self/task"):
-        with open(f"/proc/self/task/{tid}/stat", encoding="ascii", errors="replace") as fh:
-            stat = fh.read()
-        own += stat[stat.rindex(")") + 2:][:1] == "R"
-    return own
 
 
 def img(b64: str, alt: str, caption: str) -> str:

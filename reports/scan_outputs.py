@@ -26,6 +26,9 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
         Output name -> path.
     """
     out = OutputFolder(out_dir)
+    if report:                        # the figures are drawn while the tables are written
+        from markcal.reports.scan_report import scan_report_later      # here: matplotlib loads only for reports
+        report_html = scan_report_later(result)
     f = result.fiducials
     out.csv("fiducials.csv", {k: f[k] for k in FIDUCIAL_COLUMNS})
     out.csv("deviations.csv", deviations_table(f))
@@ -34,8 +37,7 @@ def write_scan_outputs(result, out_dir, report: bool = True) -> dict:
     out.csv("corrected_targets.csv", result.targets)
     out.json("model.json", _model_document(result))
     if report:
-        from markcal.reports.scan_report import scan_report_html      # here: matplotlib loads only for reports
-        out.text("report.html", scan_report_html(result))
+        out.text("report.html", report_html())
     return out.finish(result.summary)
 
 

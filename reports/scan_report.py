@@ -2,18 +2,20 @@
 
 Everything is inline: CSS in a ``<style>`` block, figures as base64 PNG. The
 module draws with matplotlib's Agg canvas (no pyplot state, nothing to close; matplotlib is imported
-by the functions that draw, so that the two processes of ``parts_in_two`` import it side by side);
+by the functions that draw, so that only the processes that draw import it: :mod:`markcal.reports.drawing`);
 the point cloud is projected with numpy (:mod:`markcal.reports.cloud_view`).
 It neither prints nor writes files; the caller stores the returned string.
 """
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from markcal.reports.cloud_view import IsoView, splat
-from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, parts_in_two, png_b64,
+from markcal.reports.drawing import draw_groups_later
+from markcal.reports.html import (DPI, arrow_key, arrow_scale, data_files_footer, esc, img, new_figure, nice_number, num, page, png_b64,
                                   table)
 from markcal.stages.plate import nominal_grid
 from markcal.stages.deviation import GridCorrection
@@ -21,7 +23,7 @@ from markcal.stages.deviation import GridCorrection
 if TYPE_CHECKING:  # pragma: no cover
     from markcal.pipeline.flows.scan import ScanResult
 
-__all__ = ["scan_report_html"]
+__all__ = ["scan_report_html", "scan_report_later"]
 
 #: data files the caller writes beside the report, with what they hold
 DATA_FILES = (
@@ -362,6 +364,11 @@ def _image_section(result) -> tuple:
     return ("<h2>Image</h2>", f"<p>{esc(note)}</p>")
 
 
+def _view_section(result) -> str:
+    """The image note (image input) or the 3D view of the cloud."""
+    return "\n".join(_image_section(result)) if "image_pixel_mm" in result.summary else _render_3d(result)
+
+
 def _render_3d(result) -> str:
     xyz = np.asarray(result.preview_xyz_mm, float)
     inten = np.asarray(result.preview_intensity, float)
@@ -432,13 +439,13 @@ def _crop(image, raster, uv, half_mm):
     return image[r0:r1, c0:c1], ext, (r0, r1, c0, c1)
 
 
-def _fiducial_crops(result) -> str:
-    from matplotlib.patches import Circle
-    from matplotlib.ticker import MaxNLocator
+def _crop_panels(result) -> list:
+    """The crops :func:`_fiducial_crops` draws, cut from the raster here (small and picklable): per picked
+    fiducial its title, centre (u, v mm), fitted radius scale, crop extent and the four panels."""
     f = result.fiducials
     n = len(f["id"])
     if n == 0:
-        return "<p>No fiducials detected.</p>"
+        return []
     centre = int(np.argmin(np.hypot(f["x_nom_mm"], f["y_nom_mm"])))
     rms = np.asarray(f["fit_rms"], float)
     worst = int(np.nanargmax(rms)) if np.isfinite(rms).any() else centre
@@ -446,27 +453,42 @@ def _fiducial_crops(result) -> str:
     if worst != centre:
         picks.append((worst, "worst ring fit (largest fit RMS)"))
     raster, edges = result.raster, result.edges
-    radii = tuple(result.spec.ring_radii_mm)
-    half = max(4.0, 1.2 * max(radii))
-    h_in = 3.5 * len(picks)
-    fig = new_figure(13.0, h_in)
-    # fixed margins (inches: 0.5 for the x labels, 0.55 for the two-line titles) instead of a layout pass
-    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.5 / h_in, top=1 - 0.55 / h_in, wspace=0.32,
-                        hspace=1.05 / (3.5 - 1.05))
-    for k, (i, why) in enumerate(picks):
+    half = _crop_half_mm(result)
+    out = []
+    for i, why in picks:
         uv = _fiducial_uv(result, i)
-        scale = float(f["ring_radius_scale"][i])
-        r, c = int(f["row"][i]), int(f["col"][i])
         inten, ext, (r0, r1, c0, c1) = _crop(raster.intensity, raster, uv, half)
         inten = np.asarray(inten, float)
         valid = (np.ones(inten.shape, bool) if raster.valid is None
                  else np.asarray(raster.valid)[r0:r1, c0:c1])
+        title = (f"id {int(f['id'][i])} (row {int(f['row'][i])}, col {int(f['col'][i])}): {why}\n"
+                 f"fit RMS {float(f['fit_rms'][i]):.3g}, radius scale {float(f['ring_radius_scale'][i]):.4f}")
         panels = [(np.ma.masked_array(inten, ~valid), "intensity (raster)"),
-                  (np.asarray(edges.filtered)[r0:r1, c0:c1], "median filtered"),
-                  (np.asarray(edges.edges)[r0:r1, c0:c1], "Canny edges"),
-                  (np.asarray(edges.filled)[r0:r1, c0:c1], "closed + filled")]
+                  (np.array(edges.filtered[r0:r1, c0:c1]), "median filtered"),
+                  (np.array(edges.edges[r0:r1, c0:c1]), "Canny edges"),
+                  (np.array(edges.filled[r0:r1, c0:c1]), "closed + filled")]
+        out.append((title, uv, float(f["ring_radius_scale"][i]), ext, panels))
+    return out
+
+
+def _crop_half_mm(result) -> float:
+    return max(4.0, 1.2 * max(result.spec.ring_radii_mm))
+
+
+def _fiducial_crops(crops: list, radii: tuple, half: float) -> str:
+    """Raster crops around the fiducials of :func:`_crop_panels` with their fitted rings and centres."""
+    from matplotlib.patches import Circle
+    from matplotlib.ticker import MaxNLocator
+    if not crops:
+        return "<p>No fiducials detected.</p>"
+    h_in = 3.5 * len(crops)
+    fig = new_figure(13.0, h_in)
+    # fixed margins (inches: 0.5 for the x labels, 0.55 for the two-line titles) instead of a layout pass
+    fig.subplots_adjust(left=0.045, right=0.99, bottom=0.5 / h_in, top=1 - 0.55 / h_in, wspace=0.32,
+                        hspace=1.05 / (3.5 - 1.05))
+    for k, (title, uv, scale, ext, panels) in enumerate(crops):
         for j, (im, name) in enumerate(panels):
-            ax = fig.add_subplot(len(picks), len(panels), len(panels) * k + j + 1)
+            ax = fig.add_subplot(len(crops), len(panels), len(panels) * k + j + 1)
             if im.size == 0:
                 ax.text(0.5, 0.5, "outside the raster", ha="center", va="center", transform=ax.transAxes)
                 continue
@@ -491,14 +513,12 @@ def _fiducial_crops(result) -> str:
             ax.xaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))   # fewer tick objects to lay out and draw
             ax.yaxis.set_major_locator(MaxNLocator(5, steps=[1, 2, 5, 10]))
             if j == 0:
-                ax.set_title(f"id {int(f['id'][i])} (row {r}, col {c}): {why}\n"
-                             f"fit RMS {float(f['fit_rms'][i]):.3g}, radius scale {scale:.4f}", fontsize=8.5,
-                             loc="left", y=1.0)         # a fixed y: no automatic title placement pass
+                ax.set_title(title, fontsize=8.5, loc="left", y=1.0)   # a fixed y: no title placement pass
             else:
                 ax.set_title(name, fontsize=9, y=1.0)
     radii_txt = ", ".join(f"{x:g}" for x in radii)
     return img(png_b64(fig), "fiducial crops",
-                f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(picks)} detected "
+                f"Raster crops ({2 * half:.0f} × {2 * half:.0f} mm, plate frame u, v) of {len(crops)} detected "
                 f"fiducial(s) with the fitted rings (red, dashed on the grey images; spec radii {radii_txt} mm "
                 f"× fitted radius scale) and the fitted centre (blue cross). Left to right: raster intensity, "
                 f"median filtered, Canny edges, closed and hole-filled edges as fed to the Hough transform "
@@ -525,27 +545,39 @@ def scan_report_html(result: "ScanResult") -> str:
         The HTML document: inline CSS, figures as base64 PNG, no scripts and
         no external URLs.
     """
+    return scan_report_later(result)()
+
+
+def scan_report_later(result: "ScanResult"):
+    """:func:`scan_report_html` in two steps: the figures start drawing now (in the drawing processes
+    when they run), and the returned function (call it once) waits for them and returns the page."""
     s = result.summary
     kind = s.get("kind", "calibration")
     title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
              else "markcal scan report — calibration plate")
-    cloud = (lambda: "\n".join(_image_section(result))) if "image_pixel_mm" in s else (lambda: _render_3d(result))
-    # the figures in two similar halves: the second in a forked process when a core is free (html.parts_in_two)
-    (quiver, hist, view), (model, crops) = parts_in_two(
-        [lambda: _quiver_figure(result), lambda: _histogram_figures(result), cloud],
-        [lambda: _model_section(result), lambda: _fiducial_crops(result)])
-    parts = [
-        f'<div class="verdict">{_verdict(s, kind)}</div>',
-        _summary_section(result),
-        "<h2>Deviations</h2>",
-        quiver,
-        hist,
-        _stats_table(result.stats),
-        model,
-        *(() if "image_pixel_mm" in s else ("<h2>Point cloud</h2>",)),
-        view,
-        "<h2>Detected fiducials</h2>",
-        crops,
-        _footer(),
-    ]
-    return page(title, parts, source=s.get("source", result.source), summary=s)
+    # the figures in two similar groups, drawn side by side in other processes when a core is free
+    # (reports.drawing); they get the result without its raster and edge images, whose crops are cut here
+    light = replace(result, raster=None, edges=None)
+    crops = (_crop_panels(result), tuple(result.spec.ring_radii_mm), _crop_half_mm(result))
+    drawn = draw_groups_later(
+        [[(_quiver_figure, (light,)), (_histogram_figures, (light,)), (_view_section, (light,))],
+         [(_model_section, (light,)), (_fiducial_crops, crops)]])
+
+    def finish() -> str:
+        (quiver, hist, view), (model, crop_figure) = drawn()
+        parts = [
+            f'<div class="verdict">{_verdict(s, kind)}</div>',
+            _summary_section(result),
+            "<h2>Deviations</h2>",
+            quiver,
+            hist,
+            _stats_table(result.stats),
+            model,
+            *(() if "image_pixel_mm" in s else ("<h2>Point cloud</h2>",)),
+            view,
+            "<h2>Detected fiducials</h2>",
+            crop_figure,
+            _footer(),
+        ]
+        return page(title, parts, source=s.get("source", result.source), summary=s)
+    return finish

@@ -4,16 +4,14 @@ from __future__ import annotations
 import base64
 import csv
 import io
-import os
 import re
 import threading
-import time
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from markcal.reports import html
+from markcal.reports import drawing, html
 from markcal.reports.cloud_view import VIEW_DIR, IsoView, splat
 from markcal.reports.files import _fmt, write_csv
 
@@ -130,7 +128,7 @@ def test_splat_shows_the_nearest_point_and_leaves_gaps_empty():
 
 def test_scan_report_draws_every_figure_in_one_pass(small_result, monkeypatch):
     from markcal.reports.scan_report import scan_report_html
-    monkeypatch.setattr(html, "_fork_helps", lambda: False)        # every figure in this process, to count
+    monkeypatch.setattr(drawing, "_fork_helps", lambda: False)     # every figure in this process, to count
     calls = {"savefig": 0}
     from matplotlib.figure import Figure
     orig = Figure.savefig
@@ -149,105 +147,3 @@ def test_scan_report_draws_every_figure_in_one_pass(small_result, monkeypatch):
     grey = np.asarray(cloud.convert("RGB"), float)
     red = (grey[..., 0] > 150) & (grey[..., 1] < 60) & (grey[..., 2] < 60)
     assert red.sum() > 100                         # the plate normal's arrow is drawn
-
-
-def _reaped(pid: int) -> bool:
-    """The child ``pid`` is gone and was waited for (no zombie left)."""
-    try:
-        os.waitpid(pid, os.WNOHANG)
-    except ChildProcessError:
-        return True
-    return False
-
-
-@pytest.fixture
-def forking(monkeypatch):
-    """parts_in_two forks whatever the load; the pids of its children are recorded."""
-    monkeypatch.setattr(html, "_fork_helps", lambda: True)
-    children, real_fork = [], os.fork
-
-    def fork():
-        pid = real_fork()
-        if pid:
-            children.append(pid)
-        return pid
-    monkeypatch.setattr(os, "fork", fork)
-    return children
-
-
-def _all_reaped(children) -> bool:
-    return len(children) == 1 and all(_reaped(p) for p in children)
-
-
-def test_parts_in_two_draws_the_second_half_in_a_child(forking):
-    me = str(os.getpid())
-    mine, theirs = html.parts_in_two([lambda: "a", lambda: str(os.getpid())], [lambda: str(os.getpid()), lambda: "z"])
-    assert mine == ["a", me]
-    assert theirs == [str(forking[0]), "z"]                       # drawn by the child
-    assert _all_reaped(forking)
-
-
-def test_parts_in_two_redraws_what_the_child_failed(forking):
-    parent = os.getpid()
-    _, theirs = html.parts_in_two([lambda: "a"], [lambda: "redone here" if os.getpid() == parent else 1 / 0])
-    assert theirs == ["redone here"] and _all_reaped(forking)
-
-
-def test_parts_in_two_kills_a_slow_child(forking, monkeypatch):
-    parent = os.getpid()
-    monkeypatch.setattr(html, "FORK_TIMEOUT_S", 0.5)
-    t0 = time.perf_counter()
-    _, theirs = html.parts_in_two([lambda: "a"], [lambda: "here" if os.getpid() == parent else time.sleep(60)])
-    assert theirs == ["here"] and time.perf_counter() - t0 < 20 and _all_reaped(forking)
-
-
-def test_parts_in_two_error_here_ends_the_child(forking):
-    t0 = time.perf_counter()
-    with pytest.raises(ZeroDivisionError, match="division by zero"):
-        html.parts_in_two([lambda: 1 / 0], [lambda: time.sleep(60)])
-    assert time.perf_counter() - t0 < 20 and _all_reaped(forking)
-
-
-def test_scan_report_is_the_same_drawn_in_two_processes(small_result, forking, monkeypatch):
-    from markcal.reports.scan_report import scan_report_html
-    monkeypatch.setattr(html, "_fork_helps", lambda: False)
-    alone = scan_report_html(small_result)
-    monkeypatch.setattr(html, "_fork_helps", lambda: True)
-    assert scan_report_html(small_result) == alone and _all_reaped(forking)
-
-
-def test_no_fork_when_turned_off_or_loaded(monkeypatch):
-    busy = [1.0]
-    monkeypatch.setattr(html, "_busy_cores", lambda: busy[0])
-    monkeypatch.setattr(os, "cpu_count", lambda: 2)
-    import threading
-    monkeypatch.setattr(threading, "active_count", lambda: 1)      # pytest-xdist's worker runs threads
-    monkeypatch.setenv(html.FORK_ENV, "0")
-    assert not html._fork_helps()                                   # turned off
-    monkeypatch.delenv(html.FORK_ENV, raising=False)
-    assert html._fork_helps()                                       # the default, with a free core
-    busy[0] = 2.0
-    assert not html._fork_helps()                                   # no core is free
-
-
-def test_busy_cores_counts_the_runnable_tasks_now(monkeypatch, tmp_path):
-    import builtins
-    real_open = builtins.open
-    loadavg = tmp_path / "loadavg"
-    loadavg.write_text("2.95 3.01 2.50 1/113 19021\n")            # a minute of load, but only this task runs now
-    monkeypatch.setattr(builtins, "open", lambda f, *a, **k: real_open(loadavg if f == "/proc/loadavg" else f, *a, **k))
-    monkeypatch.setattr(html, "_own_running_threads", lambda: 1)
-    assert html._busy_cores() == 1.0
-    monkeypatch.setattr(html, "_own_running_threads", lambda: 2)     # a BLAS worker of this process still spins
-    loadavg.write_text("0.10 0.20 0.30 2/113 19021\n")
-    assert html._busy_cores() == 1.0                               # it is not other work
-    monkeypatch.setattr(html, "_own_running_threads", lambda: 1)
-    loadavg.write_text("0.10 0.20 0.30 3/113 19021\n")
-    assert html._busy_cores() == 3.0
-    loadavg.write_text("garbled\n")                                  # unreadable: the 1-minute load
-    monkeypatch.setattr(os, "getloadavg", lambda: (1.5, 0.0, 0.0))
-    assert html._busy_cores() == 1.5
-
-
-def test_own_running_threads_sees_the_calling_thread():
-    assert html._own_running_threads() >= 1                         # this thread runs while it reads /proc
