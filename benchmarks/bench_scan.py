@@ -16,7 +16,7 @@ codes are compared with benchmarks/compare_outputs.py.
 Both trees are byte-compiled first (``compileall``), as an installed package is: this machine sets
 PYTHONDONTWRITEBYTECODE, so without it every run would compile markcal's modules again (about 0.06 s).
 
-This code draws the report's figures in two drawing processes started before the flow, when a core is
+This code draws the report's figures in a drawing process started before the flow, when a core is
 free (``reports/drawing.py``); ``MARKCAL_REPORT_FORK=0 python benchmarks/bench_scan.py`` times it without.
 """
 from __future__ import annotations
@@ -61,16 +61,16 @@ def cpu():   # this process and its reaped children (figures drawn in a forked c
     return sum(getattr(resource.getrusage(who), k) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
                for k in ("ru_utime", "ru_stime"))
 flow = get_flow("scan")
-try:                # this code: the drawing processes start before the flow, as in the command
-    from markcal.reports.drawing import start_drawing_processes, stop_drawing_processes
+try:                # this code: the drawing process starts before the flow, as in the command
+    from markcal.reports.drawing import start_drawing_process, stop_drawing_process
 except ImportError:  # older code: none
-    start_drawing_processes = stop_drawing_processes = lambda *a: None
-start_drawing_processes(2, getattr(flow, "drawing", ()))
+    start_drawing_process = stop_drawing_process = lambda *a: None
+start_drawing_process(getattr(flow, "drawing", ()))
 res = flow.descriptor.run(sys.argv[1], sys.argv[2], dict(flow.descriptor.options), None)
 c, w = cpu(), time.perf_counter()
 flow.write(res, sys.argv[3], report=True)
 t = time.perf_counter() - w
-stop_drawing_processes()     # reaped: their CPU time counts
+stop_drawing_process()       # reaped: its CPU time counts
 print(t, cpu() - c)
 """
 

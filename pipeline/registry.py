@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 from markcal.pipeline.flows.descriptor import FlowDescriptor
-from markcal.reports.drawing import start_drawing_processes, stop_drawing_processes
+from markcal.reports.drawing import start_drawing_process, stop_drawing_process
 from markcal.reports.files import check_out_dir, start_outputs
 from markcal.stages.errors import MarkcalError
 from markcal.stages.verdict import FAIL, evaluate
@@ -26,15 +26,12 @@ class Flow:
 
     descriptor: FlowDescriptor
     write: Callable          # write(result, out_dir, report=True) -> {name: path}, summary.json last
-    drawing: tuple = ()      # report modules its drawing processes import while the flow runs (none: no processes)
+    drawing: tuple = ()      # report modules its drawing process imports while the flow runs (none: no process)
 
     @property
     def name(self) -> str:
         return self.descriptor.name
 
-
-#: drawing processes of a flow that asks for them (one per group of figures its report draws)
-DRAWING_PROCESSES = 2
 
 #: name -> (flow module exporting FLOW, "module:function" of its writer, drawing modules), in recognition order.
 #: Modules are imported when first asked for, so a single command loads only its own flow.
@@ -46,7 +43,7 @@ def register(name: str, flow_module: str, writer: str, drawing: tuple = ()) -> N
     """Add (or replace) a flow: its module (exporting ``FLOW``) and its writer ``"module:function"``.
 
     ``drawing``: the report modules of a writer that draws through ``reports.drawing.draw_groups``;
-    its drawing processes start before the flow runs and import them meanwhile.
+    its drawing process starts before the flow runs and imports them meanwhile.
     """
     REGISTERED[name] = (flow_module, writer, tuple(drawing))
     _LOADED.pop(name, None)
@@ -235,8 +232,8 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
     if clear_first:
         start_outputs(out_dir)
     report = not opts.get("no_report", False)
-    # the report's drawing processes import matplotlib while the flow computes (before any thread starts)
-    start_drawing_processes(DRAWING_PROCESSES if report and flow.drawing else 0, flow.drawing)
+    if report and flow.drawing:       # the report's drawing process imports matplotlib while the flow computes
+        start_drawing_process(flow.drawing)       # (started before any thread is)
     try:
         # the checksums (hashlib and file reads release the interpreter lock) are computed while the flow
         # runs, when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
@@ -252,7 +249,7 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
             progress("writing tables and report")
         paths = flow.write(result, out_dir, report=report)
     finally:
-        stop_drawing_processes()
+        stop_drawing_process()
     return result, paths
 
 

@@ -4,13 +4,14 @@ Two ways, both on Linux/macOS only (``os.fork``) and only when a core is free (:
 
 - :func:`parts_in_two` forks a child when the figures are due; it draws half of them while this
   process draws the other half. Each process imports matplotlib then (about 0.3 s).
-- :func:`start_drawing_processes` forks drawing processes before a flow runs: they import matplotlib
-  and the report's module while the flow computes, then wait. :func:`draw_groups` sends them the
-  figures (module-level functions and picklable arguments) when they are due. The flow's registration
-  says whether it wants them (``registry.register(..., drawing=...)``).
+- :func:`start_drawing_process` forks a drawing process before a flow runs: it imports matplotlib and
+  the report's module while the flow computes (at idle priority), then waits. :func:`draw_groups`
+  sends it the figures (module-level functions and picklable arguments) when they are due; it draws
+  one group and a fork of itself, matplotlib already imported, the others. The flow's registration
+  says whether it wants one (``registry.register(..., drawing=...)``).
 
-A drawing process that fails, dies or takes longer than :data:`FORK_TIMEOUT_S` is killed and its
-figures are drawn here, so an error comes out here, as it would without it.
+A process that fails, dies or takes longer than :data:`FORK_TIMEOUT_S` is killed and its figures are
+drawn here, so an error comes out here, as it would without it.
 """
 from __future__ import annotations
 
@@ -24,8 +25,7 @@ from functools import partial
 
 from markcal.reports.html import figure_progress
 
-__all__ = ["parts_in_two", "start_drawing_processes", "stop_drawing_processes", "draw_groups", "draw_groups_later",
-           "FORK_ENV"]
+__all__ = ["parts_in_two", "start_drawing_process", "stop_drawing_process", "draw_groups", "draw_groups_later", "FORK_ENV"]
 
 #: environment variable: "0" keeps every figure in this process; by default a report draws half of its
 #: figures in a forked process when a core is free (the 5.4 M-point scan: 3.8 s instead of 4.2 s wall at
@@ -47,9 +47,11 @@ def parts_in_two(here, there) -> tuple:
     """
     if not _fork_helps():
         return [f() for f in here], [f() for f in there]
-    import pickle
-    import select
-    import signal
+    return _in_two(here, there)
+
+
+def _in_two(here, there) -> tuple:
+    """:func:`parts_in_two` without asking whether forking helps."""
     import gc
     r, w = os.pipe()
     gc.freeze()                  # the collector leaves the objects both processes share alone: fewer page copies
@@ -143,61 +145,49 @@ def _own_running_threads() -> int:
     return own
 
 
-# ----------------------------------------------------------------------------- drawing processes
+# ----------------------------------------------------------------------------- the drawing process
 
-#: the drawing processes of this command: (pid, job pipe's write end, result pipe's read end)
-_DRAWERS: list = []
+#: the drawing process of this command, as [(pid, job pipe's write end, result pipe's read end)] or []
+_DRAWER: list = []
 
 
-def start_drawing_processes(n: int, modules: tuple = ()) -> int:
-    """Fork ``n`` drawing processes now, when forking helps (:func:`_fork_helps`); none when some run.
+def start_drawing_process(modules: tuple = ()) -> bool:
+    """Fork the drawing process now, when forking helps (:func:`_fork_helps`) and none runs.
 
-    Each imports matplotlib and ``modules`` (the report's module), draws one tiny figure (fonts) and
-    waits for :func:`draw_groups`. Call before the flow, from a process with no other threads.
-    Returns how many run; :func:`stop_drawing_processes` ends them.
+    It imports matplotlib and ``modules`` (the report's module) and draws one tiny figure (fonts), at
+    idle priority where the system allows it (``SCHED_IDLE``: the flow, running meanwhile, comes first),
+    then waits for :func:`draw_groups`. Call before the flow, from a process with no other threads.
+    Returns whether it runs; :func:`stop_drawing_process` ends it.
     """
-    if _DRAWERS or n <= 0 or not _fork_helps():
-        return len(_DRAWERS)
+    if _DRAWER or not _fork_helps():
+        return bool(_DRAWER)
     import gc
-    gc.freeze()                                   # the collector leaves the objects both processes share alone
-    try:
-        for _ in range(n):
-            if not _fork_drawer(modules):
-                break
-    finally:
-        gc.unfreeze()
-    return len(_DRAWERS)
-
-
-def _fork_drawer(modules: tuple) -> bool:
-    """Fork one drawing process; False when the system has no process or memory for it."""
     jobs_r, jobs_w = os.pipe()
     results_r, results_w = os.pipe()
+    gc.freeze()                                   # the collector leaves the objects both processes share alone
     try:
         pid = os.fork()
-    except OSError:
+    except OSError:                               # no memory or process slot: no drawing process
+        gc.unfreeze()
         for fd in (jobs_r, jobs_w, results_r, results_w):
             os.close(fd)
         return False
     if pid == 0:
         os.close(jobs_w)
         os.close(results_r)
-        for _pid, w, r in _DRAWERS:              # the siblings' ends: their EOF must not wait for this one
-            os.close(w)
-            os.close(r)
-        _serve(jobs_r, results_w, modules)       # never returns
+        _serve(jobs_r, results_w, modules)        # never returns
+    gc.unfreeze()
     os.close(jobs_r)
     os.close(results_w)
     os.set_blocking(jobs_w, False)               # a stuck drawer must not block the sender past its deadline
-    _DRAWERS.append((pid, jobs_w, results_r))
+    _DRAWER.append((pid, jobs_w, results_r))
     return True
 
 
-def stop_drawing_processes() -> None:
-    """End the drawing processes (their job pipe closes; they exit) and reap them."""
-    while _DRAWERS:
-        pid, w, r = _DRAWERS.pop()
-        _end(pid, w, r, kill=False)
+def stop_drawing_process() -> None:
+    """End the drawing process (its job pipe closes; it exits) and reap it."""
+    if _DRAWER:
+        _end(*_DRAWER.pop(), kill=False)
 
 
 def _end(pid: int, w: int, r: int, kill: bool) -> None:
@@ -215,11 +205,15 @@ def _end(pid: int, w: int, r: int, kill: bool) -> None:
 
 
 def _serve(jobs_r: int, results_w: int, modules: tuple) -> None:
-    """A drawing process: warm up, then draw each group of figures it is sent, until the pipe closes."""
+    """The drawing process: warm up, then draw the groups of figures it is sent, until the pipe closes.
+
+    The first group is drawn here and the others in a fork of this process (:func:`_in_two`), which has
+    matplotlib imported already: one import serves both cores.
+    """
     code = 0
     try:
         figure_progress(None)
-        _idle_priority(True)                      # the flow's own work comes first while it runs
+        _idle_priority(True)
         _warm_up(modules)
         _idle_priority(False)
         while True:
@@ -227,11 +221,17 @@ def _serve(jobs_r: int, results_w: int, modules: tuple) -> None:
             if msg is None:
                 break
             try:
-                out = (True, [fn(*args) for fn, args in pickle.loads(msg)])
-            except Exception:                     # noqa: BLE001 - the parent draws them and shows the error
+                groups = pickle.loads(msg)
+                if len(groups) < 2:
+                    out = (True, [_draw_here(g) for g in groups])
+                else:
+                    first, rest = _in_two([partial(_draw_here, groups[0])],
+                                          [partial(_draw_here, g) for g in groups[1:]])
+                    out = (True, first + rest)
+            except Exception:                     # noqa: BLE001 - the caller draws them and shows the error
                 out = (False, None)
             _send(results_w, pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL), None)
-    except BaseException:                         # noqa: BLE001 - the parent redraws; nothing printed
+    except BaseException:                         # noqa: BLE001 - the caller redraws; nothing printed
         code = 1
     finally:
         os._exit(code)
@@ -259,37 +259,37 @@ def _warm_up(modules: tuple) -> None:
 def draw_groups(groups: list) -> list:
     """Draw groups of report parts; each part is ``(function, args)`` returning HTML.
 
-    With as many drawing processes as groups (:func:`start_drawing_processes`), each group is drawn in
-    one of them, side by side. Else two groups go through :func:`parts_in_two`, and any other number is
-    drawn here. A group whose process fails or exceeds :data:`FORK_TIMEOUT_S` is drawn here.
+    With the drawing process (:func:`start_drawing_process`), the groups are drawn there, its first
+    group beside the others (:func:`_serve`). Else two groups go through :func:`parts_in_two`, and any
+    other number is drawn here. What the drawing process fails to draw, or does not send within
+    :data:`FORK_TIMEOUT_S`, is drawn here (a stuck process is killed).
     """
     return draw_groups_later(groups)()
 
 
 def draw_groups_later(groups: list):
-    """:func:`draw_groups` in two steps: the groups go to the drawing processes now, and the returned
+    """:func:`draw_groups` in two steps: the groups go to the drawing process now, and the returned
     function (call it once) collects them, so this process can do other work meanwhile."""
-    if len(_DRAWERS) < len(groups):
-        def here():
-            if len(groups) == 2:
-                return list(parts_in_two(*[[partial(fn, *args) for fn, args in g] for g in groups]))
-            return [_draw_here(g) for g in groups]
+    def here():
+        if len(groups) == 2:
+            mine, theirs = parts_in_two([partial(_draw_here, groups[0])], [partial(_draw_here, groups[1])])
+            return mine + theirs
+        return [_draw_here(g) for g in groups]
+
+    if not _DRAWER:
         return here
+    pid, w, r = _DRAWER[0]
     deadline = time.monotonic() + FORK_TIMEOUT_S
-    drawers = _DRAWERS[:len(groups)]
-    sent = [_send(w, pickle.dumps(g, protocol=pickle.HIGHEST_PROTOCOL), deadline)
-            for g, (_pid, w, _r) in zip(groups, drawers)]
+    sent = _send(w, pickle.dumps(groups, protocol=pickle.HIGHEST_PROTOCOL), deadline)
 
     def collect():
-        out = []
-        for g, ok, (pid, w, r) in zip(groups, sent, drawers):
-            msg = _receive(r, deadline) if ok else None
-            done, drawn = pickle.loads(msg) if msg is not None else (False, None)
-            if msg is None:                       # dead, stuck or cut off: it is not used again
-                _DRAWERS.remove((pid, w, r))
-                _end(pid, w, r, kill=True)
-            out.append(drawn if done else _draw_here(g))
-        return out
+        msg = _receive(r, deadline) if sent else None
+        if msg is None:                           # dead, stuck or cut off: it is not used again
+            _DRAWER.clear()
+            _end(pid, w, r, kill=True)
+            return here()
+        done, drawn = pickle.loads(msg)
+        return drawn if done else [_draw_here(g) for g in groups]
     return collect
 
 

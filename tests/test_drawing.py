@@ -125,6 +125,12 @@ def _fail_in_a_drawer(parent):
     return "here"
 
 
+def _fail_but_in(*pids):
+    if os.getpid() not in pids:
+        raise ValueError("fails in this process")
+    return f"{os.getpid()}:ok"
+
+
 def _sleep_in_a_drawer(parent):
     if os.getpid() != parent:
         time.sleep(60)
@@ -136,74 +142,79 @@ def _fails_everywhere():
 
 
 @pytest.fixture
-def drawers(monkeypatch):
-    """Drawing processes started whatever the load (without the warm-up's matplotlib import); stopped after."""
+def drawer(monkeypatch):
+    """The drawing process, started whatever the load (without the warm-up's imports); stopped after."""
     monkeypatch.setattr(drawing, "_fork_helps", lambda: True)
     monkeypatch.setattr(drawing, "_warm_up", lambda modules: None)
-    n = drawing.start_drawing_processes(2)
-    pids = [p for p, _, _ in drawing._DRAWERS]
-    yield n, pids
-    drawing.stop_drawing_processes()
-    assert not drawing._DRAWERS and all(_reaped(p) for p in pids)        # ended and waited for: no zombies
+    assert drawing.start_drawing_process()
+    pid = drawing._DRAWER[0][0]
+    yield pid
+    drawing.stop_drawing_process()
+    assert not drawing._DRAWER and _reaped(pid)                   # ended and waited for: no zombie
 
 
-def test_drawing_processes_draw_each_group_side_by_side(drawers):
-    n, pids = drawers
-    assert n == 2 and len(set(pids)) == 2 and os.getpid() not in pids
+def test_the_drawing_process_draws_the_groups_side_by_side(drawer):
+    assert drawer != os.getpid()
     first, second = drawing.draw_groups([[(_pid_and, ("a",)), (_pid_and, ("b",))], [(_pid_and, ("c",))]])
-    who = {v.split(":")[0] for v in first} | {v.split(":")[0] for v in second}
     assert [v.split(":")[1] for v in first + second] == ["a", "b", "c"]       # in order
-    assert who == {str(p) for p in pids}                                       # one group in each process
-    again = drawing.draw_groups([[(_pid_and, ("d",))], [(_pid_and, ("e",))]])  # they serve until stopped
-    assert [g[0].split(":")[1] for g in again] == ["d", "e"] and len(drawing._DRAWERS) == 2
+    assert {v.split(":")[0] for v in first} == {str(drawer)}                   # the first group in it
+    helper = second[0].split(":")[0]
+    assert helper not in (str(drawer), str(os.getpid()))                       # the second in a fork of it
+    again = drawing.draw_groups([[(_pid_and, ("d",))], [(_pid_and, ("e",))]])  # it serves until stopped
+    assert [g[0].split(":")[1] for g in again] == ["d", "e"] and drawing._DRAWER[0][0] == drawer
+    assert drawing.draw_groups([[(_pid_and, ("f",))]]) == [[f"{drawer}:f"]]    # one group: drawn there
 
 
-def test_a_group_that_fails_in_its_drawer_is_drawn_here(drawers):
+def test_a_group_that_fails_in_the_drawing_process_is_drawn_here(drawer):
     parent = os.getpid()
     out = drawing.draw_groups([[(_fail_in_a_drawer, (parent,))], [(_pid_and, ("x",))]])
-    assert out[0] == ["here"] and out[1][0].endswith(":x")
+    assert out[0] == ["here"] and out[1][0] == f"{parent}:x"                   # both drawn here
+    out = drawing.draw_groups([[(_pid_and, ("y",))], [(_fail_but_in, (parent, drawer))]])
+    assert out == [[f"{drawer}:y"], [f"{drawer}:ok"]]                          # its fork failed: it redrew
     with pytest.raises(ValueError, match="fails here too"):                    # the error comes out here
-        drawing.draw_groups([[(_fails_everywhere, ())], [(_pid_and, ("y",))]])
+        drawing.draw_groups([[(_fails_everywhere, ())], [(_pid_and, ("z",))]])
+    assert drawing._DRAWER                                                     # still serving
 
 
-def test_a_stuck_drawer_is_killed_and_its_group_drawn_here(drawers, monkeypatch):
-    _, pids = drawers
+def test_a_stuck_drawing_process_is_killed_and_the_groups_drawn_here(drawer, monkeypatch):
     monkeypatch.setattr(drawing, "FORK_TIMEOUT_S", 0.5)
     t0 = time.perf_counter()
     out = drawing.draw_groups([[(_sleep_in_a_drawer, (os.getpid(),))], [(_pid_and, ("z",))]])
     assert out[0] == ["here"] and time.perf_counter() - t0 < 20
-    assert len(drawing._DRAWERS) == 1 and _reaped(pids[0])                    # killed, reaped, not used again
+    assert not drawing._DRAWER and _reaped(drawer)                             # killed, reaped, not used again
 
 
-def test_without_drawing_processes_two_groups_fork_as_before(forking):
-    assert not drawing._DRAWERS
+def test_without_the_drawing_process_two_groups_fork_as_before(forking):
+    assert not drawing._DRAWER
     first, second = drawing.draw_groups([[(_pid_and, ("a",))], [(_pid_and, ("b",))]])
     assert first == [f"{os.getpid()}:a"] and second == [f"{forking[0]}:b"] and _all_reaped(forking)
 
 
-def test_scan_report_is_the_same_drawn_by_drawing_processes(small_result, monkeypatch):
+def test_scan_report_is_the_same_drawn_by_the_drawing_process(small_result, monkeypatch):
     from markcal.reports.scan_report import scan_report_html
     monkeypatch.setattr(drawing, "_fork_helps", lambda: False)
     alone = scan_report_html(small_result)
     monkeypatch.setattr(drawing, "_fork_helps", lambda: True)
-    assert drawing.start_drawing_processes(2, ("markcal.reports.scan_report",)) == 2
+    assert drawing.start_drawing_process(("markcal.reports.scan_report",))
     try:
         drawn = scan_report_html(small_result)
-        assert len(drawing._DRAWERS) == 2                                      # none failed
+        assert drawing._DRAWER                                                 # it did not fail
     finally:
-        drawing.stop_drawing_processes()
+        drawing.stop_drawing_process()
     assert drawn == alone
 
 
-def test_the_scan_command_stops_its_drawing_processes(small_files, tmp_path, monkeypatch):
+def test_the_scan_command_stops_its_drawing_process(small_files, tmp_path, monkeypatch):
     from markcal.pipeline.registry import run_and_write
     monkeypatch.setattr(drawing, "_fork_helps", lambda: True)
     started = []
-    real = drawing._fork_drawer
-    monkeypatch.setattr(drawing, "_fork_drawer", lambda modules: started.append(modules) or real(modules))
+    real = drawing.start_drawing_process
+    monkeypatch.setattr(drawing, "start_drawing_process", lambda modules: started.append(modules) or real(modules))
+    import markcal.pipeline.registry as registry
+    monkeypatch.setattr(registry, "start_drawing_process", drawing.start_drawing_process)
     _, paths = run_and_write("scan", small_files[0], tmp_path / "out", spec_path=small_files[1])
-    assert started == [("markcal.reports.scan_report",)] * 2 and not drawing._DRAWERS
+    assert started == [("markcal.reports.scan_report",)] and not drawing._DRAWER
     assert os.path.getsize(paths["report.html"]) > 100_000
     _, paths = run_and_write("scan", small_files[0], tmp_path / "out2", spec_path=small_files[1],
                              options={"no_report": True})
-    assert len(started) == 2 and "report.html" not in paths                   # no report: no drawers
+    assert len(started) == 1 and "report.html" not in paths                   # no report: no drawing process
