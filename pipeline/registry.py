@@ -7,6 +7,7 @@ batch index lists the flows.
 """
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -76,6 +77,7 @@ def all_flows() -> dict:
     return {name: get_flow(name) for name in REGISTERED}
 
 
+@functools.cache
 def markcal_version() -> str:
     """The installed markcal version ("unknown" when run from a source tree that is not installed)."""
     from importlib.metadata import PackageNotFoundError, version
@@ -239,6 +241,7 @@ def run_and_write(name: str, input_path, out_dir, spec_path=None, options: dict 
         # runs, when every input is a plain file or folder (a pipe or device is left to the flow, which refuses it)
         if all(os.path.isfile(p) or os.path.isdir(p) for p in inputs):
             with ThreadPoolExecutor(1, thread_name_prefix="markcal-sha256") as pool:
+                pool.submit(markcal_version)      # for the provenance: its metadata lookup is done there too
                 digests = pool.submit(input_digests, input_path, spec_path)
                 result = d.run(input_path, spec_path, opts, progress)
                 digests = digests.result()

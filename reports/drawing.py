@@ -5,7 +5,7 @@ Two ways, both on Linux/macOS only (``os.fork``) and only when a core is free (:
 - :func:`parts_in_two` forks a child when the figures are due; it draws half of them while this
   process draws the other half. Each process imports matplotlib then (about 0.3 s).
 - :func:`start_drawing_process` forks a drawing process before a flow runs: it imports matplotlib and
-  the report's module while the flow computes (at idle priority), then waits. :func:`draw_groups`
+  the report's module while the flow computes, then waits. :func:`draw_groups`
   sends it the figures (module-level functions and picklable arguments) when they are due; it draws
   one group and a fork of itself, matplotlib already imported, the others. The flow's registration
   says whether it wants one (``registry.register(..., drawing=...)``).
@@ -154,9 +154,9 @@ _DRAWER: list = []
 def start_drawing_process(modules: tuple = ()) -> bool:
     """Fork the drawing process now, when forking helps (:func:`_fork_helps`) and none runs.
 
-    It imports matplotlib and ``modules`` (the report's module) and draws one tiny figure (fonts), at
-    idle priority where the system allows it (``SCHED_IDLE``: the flow, running meanwhile, comes first),
-    then waits for :func:`draw_groups`. Call before the flow, from a process with no other threads.
+    It imports matplotlib and ``modules`` (the report's module) and draws one tiny figure (fonts) while
+    the flow runs, then waits for :func:`draw_groups`. (At idle priority, ``SCHED_IDLE``, the flow was
+    no faster in A/B runs, and an unprivileged process could not have left it to draw.) Call before the flow, from a process with no other threads.
     Returns whether it runs; :func:`stop_drawing_process` ends it.
     """
     if _DRAWER or not _fork_helps():
@@ -213,9 +213,7 @@ def _serve(jobs_r: int, results_w: int, modules: tuple) -> None:
     code = 0
     try:
         figure_progress(None)
-        _idle_priority(True)
         _warm_up(modules)
-        _idle_priority(False)
         while True:
             msg = _receive(jobs_r, None)
             if msg is None:
@@ -235,14 +233,6 @@ def _serve(jobs_r: int, results_w: int, modules: tuple) -> None:
         code = 1
     finally:
         os._exit(code)
-
-
-def _idle_priority(idle: bool) -> None:
-    """Run only on otherwise idle cores (``SCHED_IDLE``), or normally again where that is allowed."""
-    try:
-        os.sched_setscheduler(0, os.SCHED_IDLE if idle else os.SCHED_OTHER, os.sched_param(0))
-    except (AttributeError, OSError):             # not Linux, or not allowed (unprivileged: it stays idle)
-        pass
 
 
 def _warm_up(modules: tuple) -> None:
