@@ -314,30 +314,31 @@ def _cv_edge_note(sel) -> str:
             + ": the best setting may lie outside the searched grid.")
 
 
-def _galvo_model_section(result) -> str:
+def _galvo_model_section(result, field_figure: str) -> str:
     mc = result.grid_model
     rows = [[esc(k), num(v, "")] for k, v in mc.cv_rmse_mm.items()]
     out = ["<h2>Correction model</h2>",
            f"<p>Model <b>{esc(mc.model.kind)}</b> (the grid flow's galvo models: paper 004 eqs. 1–5 physical "
            f"scanner plus a smoothing thin-plate spline, a spline alone, or a cubic), fitted to nominal → "
            f"measured positions; {mc.folds}-fold cross-validation of every model on the same folds:</p>",
-           table(["model", "CV RMSE (mm)"], rows), _field_figure(result)]
+           table(["model", "CV RMSE (mm)"], rows), field_figure]
     return "\n".join(out)
 
 
-def _model_section(result) -> str:
+def _model_section(result, field_figure: str, cv_figure: str) -> str:
+    """The correction model's section around its figures (drawn by :func:`_field_figure`, :func:`_cv_figure`)."""
     if result.grid_model is not None:
-        return _galvo_model_section(result)
+        return _galvo_model_section(result, field_figure)
     sel = result.selection
     out = ["<h2>Correction model</h2>",
            f"<p>Gaussian RBF network with <b>{int(result.model.n_neurons)} neurons</b>, spread σ = "
            f"{esc(num(sel.spread_mm))}, MSE goal {sel.mse_goal_mm2:.0e} mm², trained by orthogonal least "
            f"squares on the measured positions P → Q − P.</p>",
-           _cv_figure(sel)]
+           cv_figure]
     edge = _cv_edge_note(sel)
     if edge:
         out.append(f'<div class="warn">{esc(edge)}</div>')
-    out.append(_field_figure(result))
+    out.append(field_figure)
     pr = result.predicted or {}
     rows = []
     for key, lab in (("inverse", "markcal: fitted inverse map (wanted Q → command K)"),
@@ -557,16 +558,19 @@ def scan_report_later(result: "ScanResult"):
     kind = s.get("kind", "calibration")
     title = ("markcal scan report — validation plate (post-calibration)" if kind == "validation"
              else "markcal scan report — calibration plate")
-    # the figures in two similar groups, drawn side by side in other processes when a core is free
-    # (reports.drawing); they get the result without its raster and edge images, whose crops are cut here
+    # the figures in two groups of about equal drawing time (measured on the 19 x 19 plate), drawn side by side
+    # in other processes when a core is free (reports.drawing); they get the result without its raster and edge
+    # images, whose crops are cut here
     light = replace(result, raster=None, edges=None)
     crops = (_crop_panels(result), tuple(result.spec.ring_radii_mm), _crop_half_mm(result))
+    cv = [(_cv_figure, (light.selection,))] if light.grid_model is None else []
     drawn = draw_groups_later(
-        [[(_quiver_figure, (light,)), (_histogram_figures, (light,)), (_view_section, (light,))],
-         [(_model_section, (light,)), (_fiducial_crops, crops)]])
+        [[(_fiducial_crops, crops), (_histogram_figures, (light,))],
+         [(_quiver_figure, (light,)), (_view_section, (light,)), (_field_figure, (light,)), *cv]])
 
     def finish() -> str:
-        (quiver, hist, view), (model, crop_figure) = drawn()
+        (crop_figure, hist), (quiver, view, field, *cv_figure) = drawn()
+        model = _model_section(result, field, cv_figure[0] if cv_figure else "")
         parts = [
             f'<div class="verdict">{_verdict(s, kind)}</div>',
             _summary_section(result),
