@@ -27,11 +27,11 @@ from markcal.reports.html import figure_progress
 
 __all__ = ["parts_in_two", "start_drawing_process", "stop_drawing_process", "draw_groups", "draw_groups_later", "FORK_ENV"]
 
-#: environment variable: "0" keeps every figure in this process; by default a report draws half of its
-#: figures in a forked process when a core is free (the 5.4 M-point scan: 3.8 s instead of 4.2 s wall at
-#: load 1.9 on 2 cores; it costs 0.15-0.4 s CPU more, so it is skipped when no core is free)
+#: environment variable: "0" keeps every figure in this process (no drawing process, no fork); by default
+#: a report's figures are drawn in other processes when a core is free (it costs CPU time: skipped when
+#: no core is free)
 FORK_ENV = "MARKCAL_REPORT_FORK"
-#: seconds the parent waits for the child's figures before drawing them itself
+#: seconds this process waits for the figures of another before drawing them itself
 FORK_TIMEOUT_S = 120.0
 
 
@@ -155,9 +155,10 @@ def start_drawing_process(modules: tuple = ()) -> bool:
     """Fork the drawing process now, when forking helps (:func:`_fork_helps`) and none runs.
 
     It imports matplotlib and ``modules`` (the report's module) and draws one tiny figure (fonts) while
-    the flow runs, then waits for :func:`draw_groups`. (At idle priority, ``SCHED_IDLE``, the flow was
-    no faster in A/B runs, and an unprivileged process could not have left it to draw.) Call before the flow, from a process with no other threads.
-    Returns whether it runs; :func:`stop_drawing_process` ends it.
+    the flow runs, then waits for :func:`draw_groups`. It runs at normal priority: at idle priority
+    (``SCHED_IDLE``) the flow was no faster in A/B runs, and an unprivileged process could not have
+    left it to draw. Call before the flow, from a process with no other threads. Returns whether it
+    runs; :func:`stop_drawing_process` ends it.
     """
     if _DRAWER or not _fork_helps():
         return bool(_DRAWER)
