@@ -41,6 +41,8 @@ class IndentsOptions:
     tolerance_um: float = TOLERANCE_UM
     min_hd: float = MIN_HD
     load_mN: float | None = None            # indentation load: HV = 0.1891 F / d^2 (overrides the spec's)
+    objective_na: float | None = None       # OM arrays: known objective NA, the PSF held at its Airy (not fitted)
+    wavelength_um: float = 0.55             # OM: light wavelength for objective_na
 
 
 @dataclass(frozen=True)
@@ -196,7 +198,8 @@ def _measure(img: Image, spec, opt, say, t0):
         say(f"{name}: fitting {len(cands)} candidates")
         # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
         # does not describe comes back as None
-        imps = ind.measure_om_array(img.data, px, cands, sig, bg)
+        psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
+        imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf)
         floor = None
         image = img.data / bg
         info.update(noise_rel=sig)
