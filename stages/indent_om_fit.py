@@ -95,7 +95,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
     iteratively reweighted least squares; bounds by clipping.
 
-    ``pin`` = (index, value) holds one shared parameter at a value; those in ``fixed`` keep theirs.
+    ``pin`` = (index, value) holds one shared parameter at a value (by clipping each step); those in
+    ``fixed`` keep theirs (left out of the solve).
 
     Returns
     -------
@@ -108,13 +109,14 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
     ns = len(s)
     s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
-    if pin is not None:
-        s_lo[pin[0]] = s_hi[pin[0]] = pin[1]
     s = np.array(s, dtype=float)
     for j in fixed:
         s_lo[j] = s_hi[j] = s[j]
-    s = np.clip(s, s_lo, s_hi)
     free = np.array([j for j in range(ns) if s_lo[j] < s_hi[j]], dtype=int)
+    if pin is not None:
+        # held by clipping: the other parameters take the step of the unconstrained solve
+        s_lo[pin[0]] = s_hi[pin[0]] = pin[1]
+    s = np.clip(s, s_lo, s_hi)
     nf = len(free)
     targets = [p.patch.ravel() for p in patches]
 
