@@ -30,6 +30,7 @@ CREASE_W_UM = 0.06
 _NS_PLAIN = 5
 
 
+JOINT_TR_SOLVER = "exact"
 _OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
 
 
@@ -81,7 +82,7 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
 
     scale = np.concatenate([np.array([0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (len(s0) - 5))[free], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
     r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=scale, max_nfev=max_nfev)
+                      x_scale=scale, max_nfev=max_nfev, tr_solver=JOINT_TR_SOLVER)
     s, g = split(r.x)
     res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
     return s, g, res
