@@ -15,7 +15,7 @@ from scipy import fft as sfft
 from scipy.special import j1
 
 from .indent_geometry import Imprint, diagonals as _diagonals
-from .indent_om_fit import (_NS_PLAIN, _OM_OWN_STEP, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
+from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
                             _om_block_fit, _om_joint_fit, _om_own_fit)
 from .indent_om_kernel import om_dev
 

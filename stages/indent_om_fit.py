@@ -21,6 +21,7 @@ _OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
 _OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "line", "shade_u", "shade_v", "shade_uv")
 _OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0])
 _OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 0.95, 1.0, 1.0, 1.0])
+#: forward-difference steps of the shared parameters (only the PSF's is used: the other columns are analytic)
 _OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4])
 #: Gaussian sigma (µm) of the dark crease lines: under the resolution, so their integrated darkness
 #: (darkness x width) is what the fit sees
@@ -29,9 +30,6 @@ CREASE_W_UM = 0.06
 #: shading) all of them
 _NS_PLAIN = 5
 
-
-JOINT_TR_SOLVER = "exact"
-_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
 
 
 def _dev_shared(ns):
@@ -82,7 +80,7 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
 
     scale = np.concatenate([np.array([0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (len(s0) - 5))[free], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
     r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=scale, max_nfev=max_nfev, tr_solver=JOINT_TR_SOLVER)
+                      x_scale=scale, max_nfev=max_nfev)
     s, g = split(r.x)
     res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
     return s, g, res
