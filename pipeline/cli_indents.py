@@ -125,6 +125,9 @@ def register(sub, render_sub) -> None:
     p.add_argument("--pixel-size-um", type=_positive, help="pixel size (µm); overrides the file's")
     p.add_argument("--channel", help="AFM channel to measure (default: the height/topography channel, trace)")
     p.add_argument("--load-mN", type=_positive, help="indentation load (mN): Vickers hardness HV = 0.1891 F / d^2")
+    p.add_argument("--objective-na", type=_positive,
+                   help="OM arrays: the objective's numerical aperture; the blur is held at its Airy pattern "
+                        "(550 nm light) instead of fitted")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

@@ -15,10 +15,11 @@ from scipy import fft as sfft
 from scipy.special import j1
 
 from .indent_geometry import Imprint, diagonals as _diagonals
-from .indent_om_fit import (_NS_PLAIN, _OM_OWN_STEP, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
+from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
                             _om_block_fit, _om_joint_fit, _om_own_fit)
+from .indent_om_kernel import om_dev
 
-__all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array"]
+__all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array", "airy_sigma_um"]
 
 
 def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> np.ndarray:
@@ -79,31 +80,53 @@ def detect_dots(img: np.ndarray, pixel_um: float, min_diameter_um: float = 0.4,
 
 
 _AIRY_CACHE: dict = {}
+#: fine cells between the patch and its periodic copy in the circular PSF convolution, by sub-pixel
+#: factor (the model's tails reach the border of a large dot's patch, not a small one's); measured on
+#: 1 and 3 µm dots: the Jacobian differs from a linear convolution's by < 2e-5 of its largest value
+_WRAP_PAD = {1: 8, 2: 2}
 
 
-def _airy(psf_um, sub_um):
+def _airy(psf_um, sub_um, h=None):
     """Airy (diffraction-limited, in focus) intensity PSF whose Gaussian-equivalent sigma is ``psf_um``.
 
     sigma ~ 0.21 lambda / NA, so v = 2 pi NA r / lambda = 2 pi 0.21 r / sigma; sampled at
-    ``sub_um`` out to 1.8 lambda / NA. Cached (read-only arrays).
+    ``sub_um`` out to 1.8 lambda / NA (or ``h`` samples), normalised to sum 1. Cached (read-only arrays).
     """
-    key = (float(psf_um), float(sub_um))
+    key = (float(psf_um), float(sub_um), h)
     k = _AIRY_CACHE.get(key)
     if k is None:
         if len(_AIRY_CACHE) > 64:
             _AIRY_CACHE.clear()
-        k = _AIRY_CACHE[key] = _airy_kernel(psf_um, sub_um)
+        k = _AIRY_CACHE[key] = _airy_kernel(psf_um, sub_um, h)
         k.flags.writeable = False
     return k
 
 
-def _airy_kernel(psf_um, sub_um):
+def _airy_kernel(psf_um, sub_um, h=None):
     lam_na = psf_um / 0.21
-    h = max(2, int(np.ceil(1.8 * lam_na / sub_um)))
+    if h is None:
+        h = max(2, int(np.ceil(1.8 * lam_na / sub_um)))
     yy, xx = np.mgrid[-h:h + 1, -h:h + 1] * sub_um
     v = np.maximum(2 * np.pi * np.hypot(xx, yy) / lam_na, 1e-9)
     k = (2 * j1(v) / v) ** 2
     return k / k.sum()
+
+
+_KERNEL_CACHE: dict = {}
+
+
+def _box_fft(k, ss, shape):
+    """Transform of the PSF ``k`` folded with the ss x ss pixel box, for a circular convolution on a
+    grid of ``shape`` a few fine cells larger than the patch: the kernel is rolled so that pixel i's
+    mean sits at fine index ss i. What wraps round comes from the far border of the patch, where the
+    model is flat (reflectance - 1 ~ 0), so this is the linear convolution at about a third of its cost.
+    """
+    k2 = np.zeros(shape)
+    for a in range(ss):
+        for b in range(ss):
+            k2[a:a + k.shape[0], b:b + k.shape[1]] += k / ss ** 2
+    o = k.shape[0] // 2 + ss - 1                # linear convolution: pixel mean at h + ss - 1 + ss i
+    return sfft.rfft2(np.roll(k2, (-o, -o), axis=(0, 1)))
 
 
 class _OmPatch:
@@ -142,57 +165,56 @@ class _OmPatch:
         fr = (np.arange((r1 - r0) * ss) - (ss - 1) / 2) / ss + r0
         fc = (np.arange((c1 - c0) * ss) - (ss - 1) / 2) / ss + c0
         self.yf, self.xf = np.meshgrid(fr * pixel_um, fc * pixel_um, indexing="ij")
-        self._kern = {}
 
-    def _kernel_fft(self, psf):
-        got = self._kern.get(psf)
+    def _kernel_fft(self, psf, psf_step=None):
+        """Transform of the PSF folded with the pixel box, its half-width and the FFT shape; with
+        ``psf_step`` also the forward difference of the transform by the PSF width (same support).
+        Shared by the patches of one fine-grid shape (cached)."""
+        h = _airy(psf, self.sub).shape[0] // 2
+        shape = tuple(sfft.next_fast_len(max(n + _WRAP_PAD[self.ss], 2 * h + self.ss + 1), real=True) for n in self.xf.shape)
+        key = (psf, self.sub, self.ss, shape)
+        got = _KERNEL_CACHE.get(key)
         if got is None:
-            k = _airy(psf, self.sub)
-            h = k.shape[0] // 2
-            # fold in the ss x ss pixel box: pixel mean = full[h + ss - 1 + ss i]
-            ss = self.ss
-            k2 = np.zeros((k.shape[0] + ss - 1, k.shape[1] + ss - 1))
-            for a in range(ss):
-                for b in range(ss):
-                    k2[a:a + k.shape[0], b:b + k.shape[1]] += k / ss ** 2
-            shape = tuple(sfft.next_fast_len(n + 2 * h + ss - 1, real=True) for n in self.xf.shape)
-            got = (sfft.rfft2(k2, shape), h, shape)
-            if len(self._kern) > 8:
-                self._kern.clear()
-            self._kern[psf] = got
+            if len(_KERNEL_CACHE) > 64:
+                _KERNEL_CACHE.clear()
+            got = _KERNEL_CACHE[key] = [_box_fft(_airy(psf, self.sub), self.ss, shape), h, shape, None]
+        if psf_step is not None and got[3] is None:
+            got[3] = (_box_fft(_airy(psf + psf_step, self.sub, h), self.ss, shape) - got[0]) / psf_step
         return got
 
     def dev(self, g, s):
         """Reflectance - 1 on the fine grid."""
-        cx, cy, d, th = g[:4]
-        dark0, dark1, rim, rim_w = s[:4]
-        ct, st = np.cos(th), np.sin(th)
-        ex, ey = self.xf - cx, self.yf - cy
-        half = max(d / 2, 1e-3)
-        u, v = ex * ct + ey * st, ey * ct - ex * st
-        rho = (np.abs(u) + np.abs(v)) / half
-        inside = np.clip(0.5 - (rho - 1) * (half / np.sqrt(2) / self.sub), 0.0, 1.0)
-        t = np.maximum(rho - 1, 0) / max(rim_w, 1e-3)
-        if len(s) <= _NS_PLAIN:
-            return rim * t * t * np.exp(2 * (1 - t)) - inside * (dark0 + dark1 * np.clip(1 - rho, 0, 1))
-        su, sv = np.clip(u / self.sub, -1, 1), np.clip(v / self.sub, -1, 1)   # anti-aliased signs
-        # each facet's own brightness (one-sided light), darker towards the floor by a fraction of it
-        facet = (1.0 - dark0 - s[6] * su - s[7] * sv - s[8] * su * sv) * (1.0 - dark1 * np.clip(1 - rho, 0, 1))
-        out = rim * t * t * np.exp(2 * (1 - t)) + inside * (facet - 1.0)
-        # creases (edges and ridges) absorb a fraction of the local light: one darkness for both
-        edge = (rho - 1) * half / np.sqrt(2)                            # distance to the nearest edge
-        ridge = np.minimum(np.abs(u), np.abs(v))                        # distance to the nearest ridge
-        w2 = -0.5 / CREASE_W_UM ** 2
-        crease = np.maximum(np.exp(w2 * edge * edge), inside * np.exp(w2 * ridge * ridge))
-        return (1.0 + out) * (1.0 - s[5] * crease) - 1.0
+        return self.dev_grad(g, s, False)
 
-    def blur(self, dev, psf):
-        """PSF blur and pixel averaging of one or a stack of fine-grid arrays."""
-        kf, h, shape = self._kernel_fft(float(psf))
-        full = sfft.irfft2(sfft.rfft2(dev, shape) * kf, shape)
+    def dev_grad(self, g, s, grad=True, shared=True):
+        """Reflectance - 1 on the fine grid and (``grad``) its analytic derivatives: by the centre,
+        diagonal and orientation, then (``shared``) by the shared parameters that change it
+        (:func:`._dev_shared` order). The model is linear in all of those but the rim width.
+        Computed by :func:`.indent_om_kernel.om_dev` (one fused pass)."""
+        ext = len(s) > _NS_PLAIN
+        n_grad = 0 if not grad else (4 if not shared else (12 if ext else 8))
+        dev = np.empty(self.xf.shape)
+        grads = np.empty((n_grad,) + self.xf.shape)
+        om_dev(self.xf, self.yf, np.asarray(g, dtype=np.float64)[:4], np.asarray(s, dtype=np.float64), self.sub,
+               CREASE_W_UM, ext, n_grad, dev, grads)
+        return (dev, grads) if grad else dev
+
+    def blur(self, dev, psf, psf_step=None):
+        """PSF blur and pixel averaging of one or a stack of fine-grid arrays.
+
+        With ``psf_step`` a stack gets one more layer: the forward difference of its first layer's
+        blur by the PSF width.
+        """
+        kf, h, shape, dk = self._kernel_fft(float(psf), psf_step)
+        spec = sfft.rfft2(dev, shape)
+        if psf_step is None:
+            spec *= kf
+        else:
+            spec = np.concatenate([spec * kf, (spec[0] * dk)[None]])
+        full = sfft.irfft2(spec, shape)
         ny, nx = self.patch.shape
-        ss, o = self.ss, h + self.ss - 1
-        return full[..., o:o + ss * ny:ss, o:o + ss * nx:ss]
+        ss = self.ss
+        return full[..., 0:ss * ny:ss, 0:ss * nx:ss]
 
     def lin(self, g):
         return g[4] + g[5] * self.dx + g[6] * self.dy
@@ -202,26 +224,20 @@ class _OmPatch:
         return (1.0 + self.blur(self.dev(g, s), s[4])) * self.lin(g)
 
     def jac(self, g, s, shared=True):
-        """Model and forward-difference Jacobian (pixels x (7 own [+ shared]) columns)."""
-        devs = [self.dev(g, s)]
-        for j in range(4):
-            gj = g.copy()
-            gj[j] += _OM_OWN_STEP[j]
-            devs.append(self.dev(gj, s))
-        if shared:
-            for j in _dev_shared(len(s)):
-                sj = s.copy()
-                sj[j] += _OM_SHARED_STEP[j]
-                devs.append(self.dev(g, sj))
-        pix = self.blur(np.stack(devs), s[4])
+        """Model and analytic Jacobian (pixels x (7 own [+ shared]) columns): the derivative images are
+        blurred in one batched FFT (the blur is linear); the PSF column is the forward difference of the
+        kernel."""
+        dev0, grads = self.dev_grad(g, s, shared=shared)
+        pix = self.blur(np.concatenate([dev0[None], grads]), s[4],
+                        psf_step=_OM_SHARED_STEP[4] if shared else None)
         lin = self.lin(g)
         base = 1.0 + pix[0]
         m = base * lin
-        cols = [(pix[1 + j] - pix[0]) * lin / _OM_OWN_STEP[j] for j in range(4)]
+        cols = [pix[1 + j] * lin for j in range(4)]
         cols += [base, base * self.dx, base * self.dy]
         if shared:
-            sh = {j: (pix[5 + n] - pix[0]) * lin / _OM_SHARED_STEP[j] for n, j in enumerate(_dev_shared(len(s)))}
-            sh[4] = (self.blur(devs[0], s[4] + _OM_SHARED_STEP[4]) - pix[0]) * lin / _OM_SHARED_STEP[4]
+            sh = {j: pix[5 + n] * lin for n, j in enumerate(_dev_shared(len(s)))}
+            sh[4] = pix[-1] * lin
             cols += [sh[j] for j in range(len(s))]
         return m.ravel(), np.stack([c.ravel() for c in cols], axis=1)
 
@@ -255,10 +271,29 @@ def _om_imprint(g, s, res, n_pixels):
 
 
 _OM_S0 = np.array([0.4, 0.1, 0.15, 0.2, 0.15])
+#: shared-parameter index of the PSF width
+_PSF = 4
+
+
+def airy_sigma_um(na: float, wavelength_um: float = 0.55) -> float:
+    """Gaussian-equivalent sigma (µm) of the in-focus Airy PSF of an objective: 0.21 lambda / NA.
+
+    The OM model's PSF parameter, so the model draws exactly that objective's Airy pattern.
+    """
+    return 0.21 * wavelength_um / na
+
+
+def _fix_psf(s, psf_um):
+    """Hold the PSF at ``psf_um`` (set in ``s``): the ``fixed`` indices for the solvers."""
+    if psf_um is None:
+        return ()
+    s[_PSF] = psf_um
+    return (_PSF,)
 
 
 def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_px: float,
-               noise_rel: float, background: np.ndarray | None = None) -> Imprint | None:
+               noise_rel: float, background: np.ndarray | None = None,
+               psf_um: float | None = None) -> Imprint | None:
     """Measure one dark dot on its own: sub-pixel centre and apparent diameter by an image-model fit.
 
     All model parameters (own and shared, see :func:`measure_om_array`) are fitted to
@@ -275,6 +310,9 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
         Relative noise of the grey values.
     background : ndarray, optional
         Illumination (:func:`om_background`); a linear term per patch refines it.
+    psf_um : float, optional
+        The PSF's Gaussian-equivalent sigma (µm) when the optics are known (:func:`airy_sigma_um`):
+        held instead of fitted.
 
     Returns
     -------
@@ -286,8 +324,9 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
         return None
     s0 = _OM_S0.copy()
     s0[0] = float(np.clip(1 - p.patch.min(), 0.1, 0.9))
+    fixed = _fix_psf(s0, psf_um)
     g0, d0 = p.start(s0)
-    s, g, res = _om_joint_fit([p], g0[None], [d0], s0, noise_rel, max_nfev=60)
+    s, g, res = _om_joint_fit([p], g0[None], [d0], s0, noise_rel, max_nfev=60, fixed=fixed)
     g = g[0]
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45 or g[2] < 0.25:
         return None
@@ -296,7 +335,7 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
 
 def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_rel: float,
                      background: np.ndarray | None = None, n_joint: int = 8,
-                     refine_all: bool = True) -> list:
+                     refine_all: bool = True, psf_um: float | None = None) -> list:
     """Measure every dark dot of one micrograph with shared darkness, rim and PSF.
 
     One objective blurs every imprint alike and one material darkens them alike, so the
@@ -315,6 +354,9 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     ----------
     candidates : list of (row, col, radius_px)
         From :func:`detect_dots`.
+    psf_um : float, optional
+        Known optics (:func:`airy_sigma_um`): the PSF is held at this Gaussian-equivalent sigma (µm)
+        instead of fitted.
 
     Returns
     -------
@@ -322,8 +364,9 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
         One entry per candidate (same order); ``psf_um`` and ``contrast`` are the shared values.
     """
     if len(candidates) < 3:
-        return [measure_om(img, pixel_um, r, c, rad, noise_rel, background) for r, c, rad in candidates]
-    out, _misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None)
+        return [measure_om(img, pixel_um, r, c, rad, noise_rel, background, psf_um) for r, c, rad in candidates]
+    out, _misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None,
+                                  psf_um)
     return out
 
 
@@ -331,6 +374,8 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
 CREASE_START = 0.25
 #: crease darknesses of the profile over every dot (:func:`_om_array_pass`)
 CREASE_PROFILE = (0.0, 0.15, 0.3, 0.45, 0.6)
+#: block-fit steps at the first profile value and at each following one (warm-started)
+CREASE_STEPS = (4, 2)
 
 
 def _extended(s_plain):
@@ -344,7 +389,7 @@ def _extended(s_plain):
     return s
 
 
-def _choose_model(patches, g0, d0, s_plain, noise_rel):
+def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
     """Plain or extended shared model for the typical dots.
 
     The plain model is fitted, then the extended one (creases, one-sided shading) when the Bayesian
@@ -357,13 +402,13 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel):
     -------
     s : ndarray (shared parameters of the chosen model), g : ndarray (k, 7), extended : bool
     """
-    s_p, g_p, res_p = _om_joint_fit(patches, g0, d0, s_plain, noise_rel)
+    s_p, g_p, res_p = _om_joint_fit(patches, g0, d0, s_plain, noise_rel, fixed=fixed)
     n = sum(r.size for r in res_p)
 
     def ext_fit(line0, max_nfev):
         s0 = _extended(s_p)
         s0[_NS_PLAIN] = line0
-        s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev)
+        s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev, fixed=fixed)
         return sum(float(np.sum(r * r)) for r in res_e), s_e, g_e
 
     # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
@@ -379,6 +424,7 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel):
         jm[o:o + m.size, 7 * k:] = jp[:, 7:]
         rr[o:o + m.size] = p.patch.ravel() - m
         o += m.size
+    jm[:, [7 * k + j for j in fixed]] = 0.0
     col = np.maximum(np.sqrt(np.sum(jm ** 2, axis=0)), 1e-30)
     step = np.linalg.lstsq(jm / col, rr, rcond=1e-9)[0] / col
     ssr_lin = float(np.sum((rr - jm @ step) ** 2))
@@ -391,7 +437,7 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel):
     return s_e, g_e, True
 
 
-def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared):
+def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared, psf_um=None):
     """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters (None: chosen by
     :func:`_choose_model` on the typical dots).
 
@@ -407,6 +453,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         return out, 0.0
     s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
+    fixed = _fix_psf(s, psf_um)
     starts = {i: patches[i].start(s) for i in ok}
     rad = np.array([patches[i].r_est for i in ok])
     # typical dots: radius nearest the median, then the darkest
@@ -416,14 +463,14 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     if n_shared is None:
         joint = order[:n_joint]
         s, g, _ext = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
-                                   [starts[i][1] for i in joint], s, noise_rel)
+                                   [starts[i][1] for i in joint], s, noise_rel, fixed)
         for i, gi in zip(joint, g):
             starts[i] = (gi, starts[i][1])
     excluded = set()
     for _round in range(3):
         joint = [i for i in order if i not in excluded][:n_joint]
         s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
-                                [starts[i][1] for i in joint], s, noise_rel)
+                                [starts[i][1] for i in joint], s, noise_rel, fixed=fixed)
         for i, gi in zip(joint, g):
             starts[i] = (gi, starts[i][1])
         fits = {}
@@ -446,17 +493,18 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1:
             # on small dots (< 16 px) the crease darkness is weakly determined (a line on the edge
             # looks like a wider dot, the ridges are short): profile it over every dot, a few steps
-            # at each of a few values, then free it
+            # at each of a few values (each value started from the previous one's fit), then free it
             f = max(3 * noise_rel, 0.005)
             best = None
-            for line in CREASE_PROFILE:
-                sp, gp, rp = _om_block_fit(bp, bg0, bd, np.where(np.arange(len(s)) == _NS_PLAIN, line, s), noise_rel,
-                                           n_iter=4, pin=(_NS_PLAIN, line))
+            sp, gp = s, bg0
+            for k, line in enumerate(CREASE_PROFILE):
+                sp, gp, rp = _om_block_fit(bp, gp, bd, np.where(np.arange(len(s)) == _NS_PLAIN, line, sp), noise_rel,
+                                           n_iter=CREASE_STEPS[k > 0], pin=(_NS_PLAIN, line), fixed=fixed)
                 c = float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in rp))
                 if best is None or c < best[0]:
                     best = (c, sp, gp)
             s, bg0 = best[1], list(best[2])
-        s, g, res = _om_block_fit(bp, bg0, bd, s, noise_rel)
+        s, g, res = _om_block_fit(bp, bg0, bd, s, noise_rel, fixed=fixed)
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:

@@ -21,6 +21,7 @@ _OM_OWN = ("cx", "cy", "d", "theta", "bg", "gx", "gy")
 _OM_SHARED = ("dark0", "dark1", "rim", "rim_w", "psf", "line", "shade_u", "shade_v", "shade_uv")
 _OM_SHARED_LO = np.array([0.0, -1.0, -0.5, 0.03, 0.04, 0.0, -1.0, -1.0, -1.0])
 _OM_SHARED_HI = np.array([1.0, 1.0, 2.0, 0.8, 0.6, 0.95, 1.0, 1.0, 1.0])
+#: forward-difference steps of the shared parameters (only the PSF's is used: the other columns are analytic)
 _OM_SHARED_STEP = np.array([1e-4, 1e-4, 1e-4, 1e-4, 1e-5, 1e-4, 1e-4, 1e-4, 1e-4])
 #: Gaussian sigma (µm) of the dark crease lines: under the resolution, so their integrated darkness
 #: (darkness x width) is what the fit sees
@@ -30,36 +31,38 @@ CREASE_W_UM = 0.06
 _NS_PLAIN = 5
 
 
-_OM_OWN_STEP = np.array([1e-5, 1e-5, 1e-5, 1e-5, 1e-6, 1e-6, 1e-6])
-
 
 def _dev_shared(ns):
     """Shared parameters that change the fine-grid reflectance: all but the PSF (index 4)."""
     return [j for j in range(ns) if j != 4]
 
 
-def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
+def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
     """Fit the shared parameters and every patch's own parameters jointly (robust loss).
 
     The Jacobian is built block by block: a patch depends only on its own seven parameters
-    and the shared ones.
+    and the shared ones. Shared parameters whose indices are in ``fixed`` keep their ``s0`` values.
     """
     k = len(patches)
-    ns = len(s0)
+    s_all = np.array(s0, dtype=float)
+    free = np.array([j for j in range(len(s0)) if j not in fixed], dtype=int)
+    ns = len(free)
     sizes = [p.patch.size for p in patches]
     offs = np.concatenate([[0], np.cumsum(sizes)])
     target = np.concatenate([p.patch.ravel() for p in patches])
-    lo = [_OM_SHARED_LO[:ns]]
-    hi = [_OM_SHARED_HI[:ns]]
+    lo = [_OM_SHARED_LO[free]]
+    hi = [_OM_SHARED_HI[free]]
     for p, d in zip(patches, d0):
         a, b = p.own_bounds(d)
         lo.append(a)
         hi.append(b)
     lo, hi = np.concatenate(lo), np.concatenate(hi)
-    x0 = np.clip(np.concatenate([s0, np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
+    x0 = np.clip(np.concatenate([s_all[free], np.ravel(g0)]), lo + 1e-9, hi - 1e-9)
 
     def split(x):
-        return x[:ns], x[ns:].reshape(k, 7)
+        s = s_all.copy()
+        s[free] = x[:ns]
+        return s, x[ns:].reshape(k, 7)
 
     def fun(x):
         s, g = split(x)
@@ -72,10 +75,10 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
             _m, jp = p.jac(g[i], s)
             rows = slice(offs[i], offs[i + 1])
             jm[rows, ns + 7 * i:ns + 7 + 7 * i] = jp[:, :7]
-            jm[rows, :ns] = jp[:, 7:]
+            jm[rows, :ns] = jp[:, 7 + free]
         return jm
 
-    scale = np.concatenate([[0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (ns - 5), np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
+    scale = np.concatenate([np.array([0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (len(s0) - 5))[free], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
     r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
                       x_scale=scale, max_nfev=max_nfev)
     s, g = split(r.x)
@@ -83,7 +86,7 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40):
     return s, g, res
 
 
-def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
 
     The normal equations have a block-arrow structure (each patch couples its seven own
@@ -91,7 +94,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
     shared block, so the cost grows linearly with the number of dots. Soft-L1 loss by
     iteratively reweighted least squares; bounds by clipping.
 
-    ``pin`` = (index, value) holds one shared parameter at a value.
+    ``pin`` = (index, value) holds one shared parameter at a value (by clipping each step); those in
+    ``fixed`` keep theirs (left out of the solve).
 
     Returns
     -------
@@ -104,9 +108,15 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
     g = np.clip(np.array(g, dtype=float), lo_g, hi_g)
     ns = len(s)
     s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
+    s = np.array(s, dtype=float)
+    for j in fixed:
+        s_lo[j] = s_hi[j] = s[j]
+    free = np.array([j for j in range(ns) if s_lo[j] < s_hi[j]], dtype=int)
     if pin is not None:
+        # held by clipping: the other parameters take the step of the unconstrained solve
         s_lo[pin[0]] = s_hi[pin[0]] = pin[1]
-    s = np.clip(np.array(s, dtype=float), s_lo, s_hi)
+    s = np.clip(s, s_lo, s_hi)
+    nf = len(free)
     targets = [p.patch.ravel() for p in patches]
 
     def cost_of(res):
@@ -116,15 +126,15 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
     res = None
     for _it in range(n_iter):
         U, W, ga = [], [], []
-        V = np.zeros((ns, ns))
-        gb = np.zeros(ns)
+        V = np.zeros((nf, nf))
+        gb = np.zeros(nf)
         res = []
         for i, p in enumerate(patches):
-            m, jm = p.jac(g[i], s)
+            m, jm = p.jac(g[i], s, shared=nf > 0)
             r = m - targets[i]
             res.append(r)
             w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
-            a, b = jm[:, :7], jm[:, 7:]
+            a, b = jm[:, :7], jm[:, 7 + free] if nf else np.zeros((m.size, 0))
             aw, bw = a * w[:, None], b * w[:, None]
             U.append(a.T @ aw)
             W.append(aw.T @ b)
@@ -135,14 +145,15 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
         improved = False
         for _try in range(5):
             uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
-            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(ns)
+            S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(nf)
             rhs = gb.copy()
             for ui, wi, gi in zip(uinv, W, ga):
                 S -= wi.T @ ui @ wi
                 rhs -= wi.T @ ui @ gi
-            ds = -np.linalg.solve(S, rhs)
+            ds = -np.linalg.solve(S, rhs) if nf else np.zeros(0)
             dg = np.array([-ui @ (gi + wi @ ds) for ui, wi, gi in zip(uinv, W, ga)])
-            s_new = np.clip(s + ds, s_lo, s_hi)
+            s_new = s.copy()
+            s_new[free] = np.clip(s[free] + ds, s_lo[free], s_hi[free])
             g_new = np.clip(g + dg, lo_g, hi_g)
             res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
             c_new = cost_of(res_new)
@@ -162,18 +173,7 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None):
     return s, g, res
 
 
-def _om_own_fit(p, g0, d0, s, noise_rel, max_nfev=40):
-    """Fit one patch's own parameters with the shared ones fixed."""
-    lo, hi = p.own_bounds(d0)
-    target = p.patch.ravel()
-    x0 = np.clip(g0, lo + 1e-9, hi - 1e-9)
-
-    def fun(g):
-        return p.model(g, s).ravel() - target
-
-    def jac(g):
-        return p.jac(g, s, shared=False)[1]
-
-    r = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=max(3 * noise_rel, 0.005),
-                      x_scale=np.array([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001]), max_nfev=max_nfev)
-    return r.x, r.fun
+def _om_own_fit(p, g0, d0, s, noise_rel, max_iter=20):
+    """Fit one patch's own parameters with the shared ones fixed (:func:`_om_block_fit` on one patch)."""
+    s_, g, res = _om_block_fit([p], [g0], [d0], s, noise_rel, n_iter=max_iter, fixed=range(len(s)))
+    return g[0], res[0]

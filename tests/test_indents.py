@@ -410,8 +410,8 @@ def test_om_array_with_lines_and_one_sided_shading():
 
 def test_om_1um_array_with_lines_and_one_sided_shading():
     """The same at 1 µm (10 px): the lines on the edges are told from a wider dot only through the ridge
-    lines (one crease darkness for both). Measured (seed 5001): d +4..+35 nm, centre RMS 6.6 nm,
-    bias 0.5 nm; the plain model was about +95 nm with a 22 nm bias."""
+    lines (one crease darkness for both). Measured (seed 5001): d +9..+39 nm, centre RMS 6.3 nm,
+    bias 0.8 nm (session 6: +3..+33 nm, 6.6 nm); the plain model was about +95 nm with a 22 nm bias."""
     e, extended = _hard_om_errors(5001, 1.0, 240)
     assert extended
     assert np.all(np.abs(e[:, 2]) <= 55.0)

@@ -41,6 +41,8 @@ class IndentsOptions:
     tolerance_um: float = TOLERANCE_UM
     min_hd: float = MIN_HD
     load_mN: float | None = None            # indentation load: HV = 0.1891 F / d^2 (overrides the spec's)
+    objective_na: float | None = None       # OM arrays: the objective's NA; the PSF is held at its Airy, not fitted
+    wavelength_um: float = 0.55             # OM: wavelength of the light for objective_na
 
 
 @dataclass(frozen=True)
@@ -196,7 +198,8 @@ def _measure(img: Image, spec, opt, say, t0):
         say(f"{name}: fitting {len(cands)} candidates")
         # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
         # does not describe comes back as None
-        imps = ind.measure_om_array(img.data, px, cands, sig, bg)
+        psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
+        imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf)
         floor = None
         image = img.data / bg
         info.update(noise_rel=sig)
@@ -334,8 +337,11 @@ def indents_options(o: dict) -> IndentsOptions:
     for k in ("pixel_size_um", "load_mN"):
         if not 0 <= o[k] <= 1e6:
             raise MarkcalError(f"{k} must be positive and at most 1e6 (0: from the file) (got {o[k]!r})")
+    na = o.get("objective_na", 0.0)
+    if not 0 <= na <= 1.6:
+        raise MarkcalError(f"objective_na must be in (0, 1.6] (0: fitted) (got {na!r})")
     return IndentsOptions(kind=o["kind"] or None, pixel_size_um=o["pixel_size_um"] or None,
-                          channel=o["channel"] or None, load_mN=o["load_mN"] or None)
+                          channel=o["channel"] or None, load_mN=o["load_mN"] or None, objective_na=na or None)
 
 
 def read_indents_spec(path) -> tuple:
@@ -373,7 +379,8 @@ def _run_descriptor(path, spec_path, options, progress=None) -> IndentsResult:
 FLOW = FlowDescriptor(
     name="indents", help="micro-indentation arrays and imprints from AFM height maps and micrographs",
     claims=_claims, run=_run_descriptor, spec_name="array.toml", validate_options=indents_options,
-    options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "no_report": False},
+    options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "objective_na": 0.0,
+             "no_report": False},
     key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
                  Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),
     tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0},
