@@ -220,23 +220,13 @@ def test_the_scan_command_stops_its_drawing_process(small_files, tmp_path, monke
     assert len(started) == 1 and "report.html" not in paths                   # no report: no drawing process
 
 
-def test_a_failing_flow_stops_its_drawing_process(small_files, tmp_path, monkeypatch):
+def test_a_failing_flow_stops_its_drawing_process(small_files, tmp_path, forking, monkeypatch):
     from markcal.pipeline.registry import run_and_write
     from markcal.stages.errors import MarkcalError
-    monkeypatch.setattr(drawing, "_fork_helps", lambda: True)
     monkeypatch.setattr(drawing, "_warm_up", lambda modules: None)
-    pids = []
-    real_fork = os.fork
-
-    def fork():
-        pid = real_fork()
-        if pid:
-            pids.append(pid)
-        return pid
-    monkeypatch.setattr(os, "fork", fork)
     bad = tmp_path / "cut.ply"
     bad.write_bytes(open(small_files[0], "rb").read()[:5000])                  # a truncated cloud
     with pytest.raises(MarkcalError, match="truncated"):
         run_and_write("scan", str(bad), tmp_path / "out", spec_path=small_files[1])
-    assert len(pids) == 1 and not drawing._DRAWER and _reaped(pids[0])         # started, then ended and reaped
+    assert not drawing._DRAWER and _all_reaped(forking)                        # started, then ended and reaped
     assert not (tmp_path / "out" / "summary.json").exists()
