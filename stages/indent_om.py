@@ -18,6 +18,7 @@ from .indent_geometry import Imprint, diagonals as _diagonals
 from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
                             _om_block_fit, _om_joint_fit, _om_own_fit)
 from .indent_om_kernel import om_dev
+from .quantile import median_filter
 
 __all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array", "airy_sigma_um"]
 
@@ -35,7 +36,7 @@ def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> n
     padded = np.pad(img.astype(np.float64), ((0, py), (0, px_)), mode="edge")
     small = padded.reshape(padded.shape[0] // f, f, padded.shape[1] // f, f).mean(axis=(1, 3))
     size = max(5, int(round(window_um / (pixel_um * f))) | 1)
-    bg = ndimage.median_filter(small, size=size, mode="nearest")
+    bg = median_filter(small, size)              # = ndimage.median_filter(mode="nearest"), 4x faster
     bg = ndimage.gaussian_filter(bg, size / 4, mode="nearest")
     rr = (np.arange(ny) - (f - 1) / 2) / f
     cc = (np.arange(nx) - (f - 1) / 2) / f
