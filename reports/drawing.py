@@ -63,44 +63,39 @@ def _in_two(here, there) -> tuple:
         os.close(w)
         return [f() for f in here], [f() for f in there]
     if pid == 0:                                          # the child: draw, send, end
-        code = 0
+        code = 1
         try:
             os.close(r)
             figure_progress(None)
-            data = pickle.dumps([f() for f in there])
-            with os.fdopen(w, "wb") as fh:
-                fh.write(data)
+            code = 0 if _send(w, pickle.dumps([f() for f in there]), None) else 1
         except BaseException:                             # noqa: BLE001 - the parent redraws; nothing printed
-            code = 1
+            pass
         finally:
             os._exit(code)
     gc.unfreeze()
     os.close(w)
-    theirs = None
+    msg = None
     try:
         mine = [f() for f in here]
-        chunks, deadline = [], time.monotonic() + FORK_TIMEOUT_S
-        while time.monotonic() < deadline:
-            if select.select([r], [], [], max(deadline - time.monotonic(), 0.0))[0]:
-                chunk = os.read(r, 1 << 20)
-                if not chunk:
-                    break
-                chunks.append(chunk)
-        else:
+        msg = _receive(r, time.monotonic() + FORK_TIMEOUT_S)
+        if msg is None:                                   # failed, or stuck past the deadline
             os.kill(pid, signal.SIGKILL)
-            chunks = []
-        _, status = os.waitpid(pid, 0)
+        os.waitpid(pid, 0)
         pid = 0
-        if chunks and os.waitstatus_to_exitcode(status) == 0:
-            theirs = pickle.loads(b"".join(chunks))
     finally:
         os.close(r)
         if pid:                                           # this process failed while the child ran
             os.kill(pid, signal.SIGKILL)
             os.waitpid(pid, 0)
-    if theirs is None:
-        theirs = [f() for f in there]
-    return mine, theirs
+    return mine, (pickle.loads(msg) if msg is not None else [f() for f in there])
+
+
+def _draw_split(groups: list, in_two) -> list:
+    """The first group drawn here, the others by ``in_two``'s child (:func:`parts_in_two` or :func:`_in_two`)."""
+    if len(groups) < 2:
+        return [_draw_here(g) for g in groups]
+    first, rest = in_two([partial(_draw_here, groups[0])], [partial(_draw_here, g) for g in groups[1:]])
+    return first + rest
 
 
 def _fork_helps() -> bool:
@@ -220,13 +215,7 @@ def _serve(jobs_r: int, results_w: int, modules: tuple) -> None:
             if msg is None:
                 break
             try:
-                groups = pickle.loads(msg)
-                if len(groups) < 2:
-                    out = (True, [_draw_here(g) for g in groups])
-                else:
-                    first, rest = _in_two([partial(_draw_here, groups[0])],
-                                          [partial(_draw_here, g) for g in groups[1:]])
-                    out = (True, first + rest)
+                out = (True, _draw_split(pickle.loads(msg), _in_two))
             except Exception:                     # noqa: BLE001 - the caller draws them and shows the error
                 out = (False, None)
             _send(results_w, pickle.dumps(out, protocol=pickle.HIGHEST_PROTOCOL), None)
@@ -252,8 +241,8 @@ def draw_groups(groups: list) -> list:
     """Draw groups of report parts; each part is ``(function, args)`` returning HTML.
 
     With the drawing process (:func:`start_drawing_process`), the groups are drawn there, its first
-    group beside the others (:func:`_serve`). Else two groups go through :func:`parts_in_two`, and any
-    other number is drawn here. What the drawing process fails to draw, or does not send within
+    group beside the others (:func:`_serve`); else here, the first group beside the others when
+    :func:`parts_in_two` forks. What the drawing process fails to draw, or does not send within
     :data:`FORK_TIMEOUT_S`, is drawn here (a stuck process is killed).
     """
     return draw_groups_later(groups)()
@@ -263,10 +252,7 @@ def draw_groups_later(groups: list):
     """:func:`draw_groups` in two steps: the groups go to the drawing process now, and the returned
     function (call it once) collects them, so this process can do other work meanwhile."""
     def here():
-        if len(groups) == 2:
-            mine, theirs = parts_in_two([partial(_draw_here, groups[0])], [partial(_draw_here, groups[1])])
-            return mine + theirs
-        return [_draw_here(g) for g in groups]
+        return _draw_split(groups, parts_in_two)
 
     if not _DRAWER:
         return here
