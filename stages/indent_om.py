@@ -16,7 +16,7 @@ from scipy.special import j1
 
 from .indent_geometry import Imprint, diagonals as _diagonals
 from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
-                            _om_block_fit, _om_joint_fit, _om_own_fit)
+                            _om_block_fit, _on_patches, _om_joint_fit, _om_own_fit)
 from .indent_om_kernel import om_dev
 from .quantile import median_filter
 
@@ -455,7 +455,12 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     fixed = _fix_psf(s, psf_um)
-    starts = {i: patches[i].start(s) for i in ok}
+    starts = {}
+
+    def start(j):
+        starts[ok[j]] = patches[ok[j]].start(s)
+
+    _on_patches(start, len(ok))
     rad = np.array([patches[i].r_est for i in ok])
     # typical dots: radius nearest the median, then the darkest
     order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
@@ -475,11 +480,15 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         for i, gi in zip(joint, g):
             starts[i] = (gi, starts[i][1])
         fits = {}
-        for i in ok:
+
+        def own(j):
+            i = ok[j]
             gi, res = _om_own_fit(patches[i], starts[i][0], starts[i][1], s, noise_rel)
             p = patches[i]
             core = np.hypot(p.dx + p.xc0 - gi[0], p.dy + p.yc0 - gi[1]).ravel() < gi[2] / 2 + 0.3
             fits[i] = (gi, float(np.sqrt(np.mean(res ** 2))), res, float(np.sqrt(np.mean(res[core] ** 2))))
+
+        _on_patches(own, len(ok))
         core = np.array([fits[i][3] for i in ok])
         limit = 3.0 * max(float(np.median(core)), noise_rel)
         bad = {i for i in ok if fits[i][3] > limit}

@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
+from .threads import map_on_threads, thread_count
+
 #: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
 #: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
 #: material): interior darkness at the edge and its increase to the floor, rim height and width
@@ -66,16 +68,25 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
 
     def fun(x):
         s, g = split(x)
-        return np.concatenate([p.model(g[i], s).ravel() for i, p in enumerate(patches)]) - target
+        out = np.empty(offs[-1])
+
+        def model(i):
+            out[offs[i]:offs[i + 1]] = patches[i].model(g[i], s).ravel()
+
+        _on_patches(model, k)
+        return out - target
 
     def jac(x):
         s, g = split(x)
         jm = np.zeros((offs[-1], x.size))
-        for i, p in enumerate(patches):
-            _m, jp = p.jac(g[i], s)
+
+        def block(i):
+            _m, jp = patches[i].jac(g[i], s)
             rows = slice(offs[i], offs[i + 1])
             jm[rows, ns + 7 * i:ns + 7 + 7 * i] = jp[:, :7]
             jm[rows, :ns] = jp[:, 7 + free]
+
+        _on_patches(block, k)
         return jm
 
     scale = np.concatenate([np.array([0.05, 0.05, 0.05, 0.05, 0.02] + [0.05] * (len(s0) - 5))[free], np.tile([0.02, 0.02, 0.05, 0.05, 0.01, 0.001, 0.001], k)])
@@ -84,6 +95,16 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
     s, g = split(r.x)
     res = [r.fun[offs[i]:offs[i + 1]] for i in range(k)]
     return s, g, res
+
+
+def _on_patches(fn, n):
+    """``fn(i)`` for every patch index, the patches split in two halves on two threads when there are
+    several (the model's kernel and the FFTs release the GIL)."""
+    if n < 4 or thread_count(2) < 2:
+        for i in range(n):
+            fn(i)
+        return
+    map_on_threads(lambda part: [fn(i) for i in part], [range(0, n, 2), range(1, n, 2)])
 
 
 def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
@@ -125,22 +146,22 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     lam = 1e-3
     res = None
     for _it in range(n_iter):
-        U, W, ga = [], [], []
-        V = np.zeros((nf, nf))
-        gb = np.zeros(nf)
-        res = []
-        for i, p in enumerate(patches):
-            m, jm = p.jac(g[i], s, shared=nf > 0)
+        terms = [None] * len(patches)
+
+        def normal_terms(i):
+            # patch i's residual and its blocks of the weighted normal equations
+            m, jm = patches[i].jac(g[i], s, shared=nf > 0)
             r = m - targets[i]
-            res.append(r)
             w = 1.0 / np.sqrt(1.0 + (r / f) ** 2)
             a, b = jm[:, :7], jm[:, 7 + free] if nf else np.zeros((m.size, 0))
             aw, bw = a * w[:, None], b * w[:, None]
-            U.append(a.T @ aw)
-            W.append(aw.T @ b)
-            ga.append(aw.T @ r)
-            V += b.T @ bw
-            gb += bw.T @ r
+            terms[i] = (r, a.T @ aw, aw.T @ b, aw.T @ r, b.T @ bw, bw.T @ r)
+
+        _on_patches(normal_terms, len(patches))
+        res = [t[0] for t in terms]
+        U, W, ga = [t[1] for t in terms], [t[2] for t in terms], [t[3] for t in terms]
+        V = sum((t[4] for t in terms), np.zeros((nf, nf)))
+        gb = sum((t[5] for t in terms), np.zeros(nf))
         cost = cost_of(res)
         improved = False
         for _try in range(5):
@@ -155,7 +176,12 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
             s_new = s.copy()
             s_new[free] = np.clip(s[free] + ds, s_lo[free], s_hi[free])
             g_new = np.clip(g + dg, lo_g, hi_g)
-            res_new = [p.model(g_new[i], s_new).ravel() - targets[i] for i, p in enumerate(patches)]
+            res_new = [None] * len(patches)
+
+            def residual(i):
+                res_new[i] = patches[i].model(g_new[i], s_new).ravel() - targets[i]
+
+            _on_patches(residual, len(patches))
             c_new = cost_of(res_new)
             if c_new < cost:
                 improved = True
