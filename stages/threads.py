@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numba
@@ -21,7 +22,8 @@ def map_on_threads(fn, items) -> None:
     exception in any call is raised here.
     """
     items = list(items)
-    workers = thread_count(len(items))
+    # called from one of the pool's own threads (nested work): here, so the pool cannot deadlock
+    workers = 1 if threading.current_thread().name.startswith(_PREFIX) else thread_count(len(items))
     if workers > 1:
         list(_pool(workers).map(fn, items))
     else:
@@ -30,14 +32,14 @@ def map_on_threads(fn, items) -> None:
 
 
 _POOLS: dict = {}
+_PREFIX = "markcal-pool"
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:
-    """One pool per thread count, kept for the life of the process (a fresh pool costs about 0.2 ms,
-    which counts in solvers that split every iteration); a forked child makes its own."""
-    key = (os.getpid(), workers)
-    pool = _POOLS.get(key)
-    if pool is None:
+    """The process's pool, kept for its life (a fresh pool costs about 0.2 ms, which counts in solvers
+    that split every iteration); a forked child makes its own."""
+    pool = _POOLS.get(os.getpid())
+    if pool is None or pool._max_workers < workers:
         _POOLS.clear()
-        pool = _POOLS[key] = ThreadPoolExecutor(workers, thread_name_prefix="markcal")
+        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(workers, thread_name_prefix=_PREFIX)
     return pool
