@@ -466,19 +466,22 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
     # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
     n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
+    extended_fitted = False
     if n_shared is None:
         joint = order[:n_joint]
-        s, g, _ext = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+        s, g, extended_fitted = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
                                    [starts[i][1] for i in joint], s, noise_rel, fixed)
         for i, gi in zip(joint, g):
             starts[i] = (gi, starts[i][1])
     excluded = set()
     for _round in range(3):
         joint = [i for i in order if i not in excluded][:n_joint]
-        s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
-                                [starts[i][1] for i in joint], s, noise_rel, fixed=fixed)
-        for i, gi in zip(joint, g):
-            starts[i] = (gi, starts[i][1])
+        # the extended model was just fitted on these dots (the plain one is only a start there): no refit
+        if not (_round == 0 and extended_fitted):
+            s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                    [starts[i][1] for i in joint], s, noise_rel, fixed=fixed)
+            for i, gi in zip(joint, g):
+                starts[i] = (gi, starts[i][1])
         fits = {}
 
         def own(j):
