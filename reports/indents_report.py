@@ -12,6 +12,7 @@ import os
 import numpy as np
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.stages.indent_om import RESOLUTION_RADII
 
 __all__ = ["indents_report_html"]
 
@@ -196,7 +197,9 @@ def indents_report_html(res) -> str:
             ("max |diameter − nominal|", num(s["max_abs_error_um"], "µm") if not s["nominal_inferred"] else ""),
             ("mean depth", num(s["mean_depth_nm"], "nm")), ("mean H/D", num(s["mean_hd"], "")),
             ("RMS dx / dy", f"{num(s['rms_dx_um'], 'µm')} / {num(s['rms_dy_um'], 'µm')}"),
-            ("pixel size", num(s["pixel_um"], "µm")), ("AFM noise", num(s["noise_nm"], "nm")),
+            ("pixel size", num(s["pixel_um"], "µm")),
+            ("optics' resolution (Airy radius of the fitted PSF)", num(s.get("optics_resolution_um"), "µm")),
+            ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
@@ -207,6 +210,13 @@ def indents_report_html(res) -> str:
                      "rounded to 0.5 µm.</div>")
     for src, msg in res.failed:
         parts.append(f'<div class="note">failed: <code>{esc(os.path.basename(src))}</code>: {esc(msg)}</div>')
+    if s.get("n_near_resolution"):
+        parts.append(f'<div class="warn"><b>{s["n_near_resolution"]} imprint(s) near the resolution limit:</b> smaller '
+                     f'than {RESOLUTION_RADII:g} × the optics\' resolution ({num(s["optics_resolution_um"], "µm")}, the '
+                     "Airy radius of the fitted PSF). At this size a dark line on the edge or a bright halo beside it "
+                     "looks like a larger or smaller imprint, so the diagonals rest on the model's assumptions and can be "
+                     "off by tens of nm (docs/indents.md, \"The information in a 1 µm image\"). A higher NA, "
+                     "a shorter wavelength or larger imprints avoid it.</div>")
     err = t["diameter_um"] - t["nominal_um"]
     low = np.isfinite(t["hd_ratio"]) & (t["hd_ratio"] < s["min_hd"])
     off = np.abs(err) > s["tolerance_um"] if s["n_out_of_tolerance"] is not None else np.zeros(len(err), bool)

@@ -12,7 +12,9 @@ This module re-exports their public names.
 from .indent_afm import detect_pits, measure_afm  # noqa: F401
 from .indent_array import ArrayFit, index_array, size_stats  # noqa: F401
 from .indent_geometry import IMPRINT_FIELDS, Imprint, circle_fit  # noqa: F401
-from .indent_om import airy_sigma_um, detect_dots, measure_om, measure_om_array, om_background  # noqa: F401
+from .indent_om import (RESOLUTION_RADII, airy_radius_um, airy_sigma_um, detect_dots, measure_om,  # noqa: F401
+                        measure_om_array, om_background)
 
 __all__ = ["circle_fit", "Imprint", "detect_pits", "measure_afm", "detect_dots", "measure_om", "measure_om_array",
-           "om_background", "ArrayFit", "index_array", "size_stats", "IMPRINT_FIELDS"]
+           "om_background", "ArrayFit", "index_array", "size_stats", "IMPRINT_FIELDS", "airy_radius_um",
+           "RESOLUTION_RADII"]

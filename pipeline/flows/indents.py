@@ -309,9 +309,22 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "mean_hv": _nanmean(t["hv"]),
         "load_mN": files[0].info.get("load_mN"),
         "n_cut_by_border": int(np.sum(t["cut_by_border"])),
+        **_resolution(files),
         "runtime_s": runtime_s,
     }
     return out
+
+
+def _resolution(files) -> dict:
+    """The optics' resolution (Airy radius from the fitted PSF, median over the OM-model imprints) and how many
+    imprints are smaller than ``RESOLUTION_RADII`` of it (their diagonals lean on the model's assumptions);
+    both null where no PSF was fitted (AFM, single-imprint micrographs)."""
+    pairs = [(m.diameter_um, ind.airy_radius_um(m.psf_um)) for f in files for m in f.imprints if np.isfinite(m.psf_um)]
+    if not pairs:
+        return {"optics_resolution_um": None, "n_near_resolution": None}
+    d, r = np.array(pairs).T
+    return {"optics_resolution_um": float(np.median(r)),
+            "n_near_resolution": int(np.sum(d < ind.RESOLUTION_RADII * r))}
 
 
 #: extensions of the height maps and micrographs the flow reads (others are recognised by content)
