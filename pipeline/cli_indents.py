@@ -128,6 +128,10 @@ def register(sub, render_sub) -> None:
     p.add_argument("--objective-na", type=_positive,
                    help="OM arrays: the objective's numerical aperture; the blur is held at its Airy pattern "
                         "(550 nm light) instead of fitted")
+    p.add_argument("--optics-from", metavar="IMAGE",
+                   help="OM arrays of small imprints: a micrograph of larger imprints (2-3 µm and up) of the same "
+                        "material and indenter under the same objective; its halo and edge-line darkness are held "
+                        "here (near the resolution limit the image alone cannot tell them from the size)")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--no-report", action="store_true", help="skip report.html")
     p.add_argument("--quiet", action="store_true", help="no progress lines on stderr")

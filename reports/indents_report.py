@@ -210,13 +210,21 @@ def indents_report_html(res) -> str:
                      "rounded to 0.5 µm.</div>")
     for src, msg in res.failed:
         parts.append(f'<div class="note">failed: <code>{esc(os.path.basename(src))}</code>: {esc(msg)}</div>')
-    if s.get("n_near_resolution"):
+    if s.get("n_near_resolution") and s.get("optics_from"):
+        parts.append(f'<div class="verdict"><b>{s["n_near_resolution"]} imprint(s) near the resolution limit</b> (smaller '
+                     f'than {RESOLUTION_RADII:g} × the optics\' resolution, {num(s["optics_resolution_um"], "µm")}): '
+                     f'their halo and edge-line darkness were held at the values measured on '
+                     f'<code>{esc(s["optics_from"])}</code> (halo height {num(s["held_rim"], "")}, width '
+                     f'{num(s["held_rim_w"], "")} half-diagonals, edge-line darkness {num(s["held_crease"], "")}), '
+                     "which the image alone cannot give.</div>")
+    elif s.get("n_near_resolution"):
         parts.append(f'<div class="warn"><b>{s["n_near_resolution"]} imprint(s) near the resolution limit:</b> smaller '
                      f'than {RESOLUTION_RADII:g} × the optics\' resolution ({num(s["optics_resolution_um"], "µm")}, the '
                      "Airy radius of the fitted PSF). At this size a dark line on the edge or a bright halo beside it "
                      "looks like a larger or smaller imprint, so the diagonals rest on the model's assumptions and can be "
-                     "off by tens of nm (docs/indents.md, \"The information in a 1 µm image\"). A higher NA, "
-                     "a shorter wavelength or larger imprints avoid it.</div>")
+                     "off by tens of nm (docs/indents.md, \"The information in a 1 µm image\"). A micrograph of "
+                     "larger imprints under the same objective (<code>--optics-from</code>), a higher NA, a shorter "
+                     "wavelength or larger imprints avoid it.</div>")
     err = t["diameter_um"] - t["nominal_um"]
     low = np.isfinite(t["hd_ratio"]) & (t["hd_ratio"] < s["min_hd"])
     off = np.abs(err) > s["tolerance_um"] if s["n_out_of_tolerance"] is not None else np.zeros(len(err), bool)

@@ -13,8 +13,8 @@ from .indent_afm import detect_pits, measure_afm  # noqa: F401
 from .indent_array import ArrayFit, index_array, size_stats  # noqa: F401
 from .indent_geometry import IMPRINT_FIELDS, Imprint, circle_fit  # noqa: F401
 from .indent_om import (RESOLUTION_RADII, airy_radius_um, airy_sigma_um, detect_dots, measure_om,  # noqa: F401
-                        measure_om_array, om_background)
+                        measure_om_array, om_background, om_halo_crease)
 
 __all__ = ["circle_fit", "Imprint", "detect_pits", "measure_afm", "detect_dots", "measure_om", "measure_om_array",
            "om_background", "ArrayFit", "index_array", "size_stats", "IMPRINT_FIELDS", "airy_radius_um",
-           "RESOLUTION_RADII"]
+           "RESOLUTION_RADII", "om_halo_crease"]

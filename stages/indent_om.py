@@ -21,7 +21,7 @@ from .indent_om_kernel import om_dev
 from .quantile import median_filter
 
 __all__ = ["om_background", "detect_dots", "measure_om", "measure_om_array", "airy_sigma_um", "airy_radius_um",
-           "RESOLUTION_RADII"]
+           "RESOLUTION_RADII", "om_halo_crease"]
 
 
 def om_background(img: np.ndarray, pixel_um: float, window_um: float = 6.0) -> np.ndarray:
@@ -350,7 +350,7 @@ def measure_om(img: np.ndarray, pixel_um: float, row: float, col: float, radius_
 
 def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_rel: float,
                      background: np.ndarray | None = None, n_joint: int = 8,
-                     refine_all: bool = True, psf_um: float | None = None) -> list:
+                     refine_all: bool = True, psf_um: float | None = None, held: dict | None = None) -> list:
     """Measure every dark dot of one micrograph with shared darkness, rim and PSF.
 
     One objective blurs every imprint alike and one material darkens them alike, so the
@@ -372,6 +372,9 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     psf_um : float, optional
         Known optics (:func:`airy_sigma_um`): the PSF is held at this Gaussian-equivalent sigma (µm)
         instead of fitted.
+    held : dict, optional
+        The halo and crease of :func:`om_halo_crease` (from larger imprints of the same material under the
+        same objective): held instead of fitted, which the imprints near the resolution limit cannot do.
 
     Returns
     -------
@@ -380,9 +383,41 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     """
     if len(candidates) < 3:
         return [measure_om(img, pixel_um, r, c, rad, noise_rel, background, psf_um) for r, c, rad in candidates]
-    out, _misfit = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None,
-                                  psf_um)
+    out, _misfit, _s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None,
+                                      psf_um, held)
     return out
+
+
+#: what :func:`om_halo_crease` passes on: shared-parameter indices of the halo (rim height, rim width in
+#: half-diagonals) and of the crease darkness (extended model only)
+_HELD = {"rim": 2, "rim_w": 3, "crease": 5}
+
+
+def om_halo_crease(img: np.ndarray, pixel_um: float, candidates: list, noise_rel: float,
+                   background: np.ndarray | None = None) -> dict:
+    """The halo (rim height and width) and crease darkness of an OM array, to hold on smaller imprints.
+
+    Near the resolution limit (:data:`RESOLUTION_RADII`) a bright halo beside the edge and a dark line on it
+    cannot be told from a larger or smaller imprint (docs/indents.md, "The information in a 1 µm image").
+    On larger imprints of the same material, indenter and objective they can: the halo scales with the
+    imprint (the rim width is in half-diagonals) and the crease line keeps its width.
+
+    Returns
+    -------
+    dict
+        ``rim``, ``rim_w`` and, when the extended model describes the image, ``crease``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than three dots measured.
+    """
+    if len(candidates) < 3:
+        raise ValueError(f"{len(candidates)} dot(s) found: at least 3 are needed")
+    out, _misfit, s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, 8, True, None)
+    if sum(m is not None for m in out) < 3:
+        raise ValueError("fewer than 3 imprints measured")
+    return {k: float(s[j]) for k, j in _HELD.items() if j < len(s)}
 
 
 #: starting crease darkness of the extended model's joint fit on the typical dots
@@ -404,7 +439,7 @@ def _extended(s_plain):
     return s
 
 
-def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
+def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=(), crease=None):
     """Plain or extended shared model for the typical dots.
 
     The plain model is fitted, then the extended one (creases, one-sided shading) when the Bayesian
@@ -412,6 +447,8 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
     prefers it: ``N ln(SSR_plain / SSR_ext) > k ln N`` (N pixels, k = 4 extra parameters), SSR_ext
     from one Gauss-Newton step of the extended model from the plain solution (cheap: no fit is
     made for images the plain model describes).
+
+    With ``crease`` (a held crease darkness, index 5 in ``fixed``) the extended model is used without asking.
 
     Returns
     -------
@@ -428,6 +465,9 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
 
     # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
     # how much do its extra terms lower the residual?
+    if crease is not None:
+        _ssr, s_e, g_e = ext_fit(crease, 40)
+        return s_e, g_e, True
     ns, k = len(_OM_SHARED), len(patches)
     s_lin = _extended(s_p)
     jm = np.zeros((n, ns + 7 * k))
@@ -439,7 +479,7 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
         jm[o:o + m.size, 7 * k:] = jp[:, 7:]
         rr[o:o + m.size] = p.patch.ravel() - m
         o += m.size
-    jm[:, [7 * k + j for j in fixed]] = 0.0
+    jm[:, [7 * k + j for j in fixed if j < ns]] = 0.0
     col = np.maximum(np.sqrt(np.sum(jm ** 2, axis=0)), 1e-30)
     step = np.linalg.lstsq(jm / col, rr, rcond=1e-9)[0] / col
     ssr_lin = float(np.sum((rr - jm @ step) ** 2))
@@ -452,11 +492,13 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=()):
     return s_e, g_e, True
 
 
-def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared, psf_um=None):
+def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared, psf_um=None,
+                   held=None):
     """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters (None: chosen by
-    :func:`_choose_model` on the typical dots).
+    :func:`_choose_model` on the typical dots); ``held``: :func:`om_halo_crease` values held.
 
-    Returns the imprints (or None) and the median residual RMS inside the dots in noise levels.
+    Returns the imprints (or None), the median residual RMS inside the dots in noise levels and the shared
+    parameters.
     """
     radii = np.array([rad for _r, _c, rad in candidates], dtype=float)
     big = radii > 4 * np.median(radii)            # a stain or a shading, not a mark of this array
@@ -465,10 +507,16 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     ok = [i for i, p in enumerate(patches) if p is not None and p.ok]
     out = [None] * len(candidates)
     if not ok:
-        return out, 0.0
+        return out, 0.0, None
     s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     fixed = _fix_psf(s, psf_um)
+    held = held or {}
+    for name, j in _HELD.items():
+        if name in held:
+            fixed += (j,)
+            if j < len(s):
+                s[j] = held[name]
     starts = {}
 
     def start(j):
@@ -484,7 +532,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     if n_shared is None:
         joint = order[:n_joint]
         s, g, extended_fitted = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
-                                   [starts[i][1] for i in joint], s, noise_rel, fixed)
+                                   [starts[i][1] for i in joint], s, noise_rel, fixed, held.get("crease"))
         for i, gi in zip(joint, g):
             starts[i] = (gi, starts[i][1])
     excluded = set()
@@ -517,7 +565,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     misfit = float(np.median([fits[i][3] for i in good])) / max(noise_rel, 1e-12)
     if refine_all and len(good) > len(joint):
         bp, bg0, bd = [patches[i] for i in good], [fits[i][0] for i in good], [starts[i][1] for i in good]
-        if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1:
+        if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1 and _NS_PLAIN not in fixed:
             # on small dots (< 16 px) the crease darkness is weakly determined (a line on the edge
             # looks like a wider dot, the ridges are short): profile it over every dot, a few steps
             # at each of a few values (each value started from the previous one's fit), then free it
@@ -535,10 +583,10 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
-        return out, misfit
+        return out, misfit, s
     for i in good:
         gi, _r, res, _c = fits[i]
         if gi[2] < 0.25:
             continue
         out[i] = _om_imprint(gi, s, res, patches[i].patch.size)
-    return out, misfit
+    return out, misfit, s

@@ -131,7 +131,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     s_lo, s_hi = _OM_SHARED_LO[:ns] + 1e-9, _OM_SHARED_HI[:ns] - 1e-9
     s = np.array(s, dtype=float)
     for j in fixed:
-        s_lo[j] = s_hi[j] = s[j]
+        if j < ns:                               # the extended model's indices are ignored by the plain one
+            s_lo[j] = s_hi[j] = s[j]
     free = np.array([j for j in range(ns) if s_lo[j] < s_hi[j]], dtype=int)
     if pin is not None:
         # held by clipping: the other parameters take the step of the unconstrained solve

@@ -144,7 +144,7 @@ ALLOWED_EMPTY = (
     (r"^summary\.(csv|json)$", r"^(n_low_hd|n_out_of_tolerance)$",
      "docs/indents.md summary.json: n_low_hd null without depths (micrographs), n_out_of_tolerance null "
      "without an array spec (no verdict on an inferred nominal)"),
-    (r"^summary\.(csv|json)$", r"^(optics_resolution_um|n_near_resolution)$",
+    (r"^summary\.(csv|json)$", r"^(optics_resolution_um|n_near_resolution|optics_from|held_rim|held_rim_w|held_crease)$",
      "docs/indents.md summary.json: null for AFM maps and single-imprint micrographs (no fitted PSF)"),
     (r"^(summary\.(csv|json)|metrics\.csv|moves\.csv)$", r"^(settling_time_s|rise_time_s)$",
      "docs/servo.md summary.json and moves.csv: settling empty when a move never settles"),

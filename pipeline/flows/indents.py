@@ -43,6 +43,8 @@ class IndentsOptions:
     load_mN: float | None = None            # indentation load: HV = 0.1891 F / d^2 (overrides the spec's)
     objective_na: float | None = None       # OM arrays: the objective's NA; the PSF is held at its Airy, not fitted
     wavelength_um: float = 0.55             # OM: wavelength of the light for objective_na
+    optics_from: str | None = None          # OM arrays: micrograph of larger imprints (same material, indenter,
+    #                                         objective) whose halo and crease are held on these (stages.indent_om)
 
 
 @dataclass(frozen=True)
@@ -100,11 +102,12 @@ def run_indents(paths, spec: ArraySpec | None = None, options: IndentsOptions | 
     opt = options or IndentsOptions()
     say = progress or (lambda msg: None)
     t0 = time.perf_counter()
+    held = optics_reference(opt.optics_from, opt, say) if opt.optics_from else None
     files, failed = [], []
     for p in paths:
         say(f"{os.path.basename(str(p))}: reading")
         try:
-            files.append(measure_file(p, spec, opt, say))
+            files.append(measure_file(p, spec, opt, say, held))
         except MarkcalError as exc:
             exc = exc.with_path(p)
             failed.append((str(p), exc.message))
@@ -116,18 +119,52 @@ def run_indents(paths, spec: ArraySpec | None = None, options: IndentsOptions | 
     sizes = ind.size_stats(indents["nominal_um"], indents["diameter_um"], indents["hd_ratio"],
                            indents["depth_nm"])
     summary = _summary(files, failed, indents, spec, opt, time.perf_counter() - t0)
+    summary.update(_held_summary(opt, held))
     return IndentsResult(files=files, failed=failed, indents=indents, sizes=sizes, summary=summary,
                          spec=spec, options=opt)
 
 
-def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m: None) -> FileResult:
-    """Read, level (AFM), detect, measure and index the imprints of one image."""
+def optics_reference(path, opt: IndentsOptions, say=lambda m: None) -> dict:
+    """The halo and crease of an OM array micrograph of larger imprints (:func:`markcal.stages.indent_om.om_halo_crease`),
+    to hold on imprints near the resolution limit imaged with the same objective.
+
+    Raises
+    ------
+    MarkcalError
+        The file is not a light micrograph of at least three imprints.
+    """
+    img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
+    if img.kind != "om":
+        raise MarkcalError("optics reference: an AFM height map; the halo and crease come from a light micrograph",
+                           path)
+    say(f"{os.path.basename(str(path))}: measuring the optics reference (halo and crease)")
+    bg = ind.om_background(img.data, img.pixel_um)
+    cands, sig = ind.detect_dots(img.data, img.pixel_um, background=bg)
+    try:
+        from threadpoolctl import threadpool_limits
+        with threadpool_limits(1):
+            return ind.om_halo_crease(img.data, img.pixel_um, cands, sig, bg)
+    except ValueError as exc:
+        raise MarkcalError(f"optics reference: {exc}", path) from None
+
+
+def _held_summary(opt: IndentsOptions, held) -> dict:
+    """summary.json: the optics reference and the values held from it (null without one)."""
+    h = held or {}
+    return {"optics_from": os.path.basename(str(opt.optics_from)) if opt.optics_from else None,
+            "held_rim": h.get("rim"), "held_rim_w": h.get("rim_w"), "held_crease": h.get("crease")}
+
+
+def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m: None,
+                 held: dict | None = None) -> FileResult:
+    """Read, level (AFM), detect, measure and index the imprints of one image; ``held``: the halo and crease of
+    :func:`optics_reference`, held on OM arrays."""
     t0 = time.perf_counter()
     img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     try:
         from threadpoolctl import threadpool_limits
         with threadpool_limits(1):          # small matrices: one BLAS thread is fastest and never oversubscribes
-            return _measure(img, spec, opt, say, t0)
+            return _measure(img, spec, opt, say, t0, held)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
 
@@ -169,7 +206,7 @@ def _micrograph_single(img: Image, say, info) -> list:
     return imps
 
 
-def _measure(img: Image, spec, opt, say, t0):
+def _measure(img: Image, spec, opt, say, t0, held=None):
     name = os.path.basename(img.source)
     if spec is not None:
         _check_fits(img, spec)
@@ -199,7 +236,7 @@ def _measure(img: Image, spec, opt, say, t0):
         # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
         # does not describe comes back as None
         psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
-        imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf)
+        imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf, held=held)
         floor = None
         image = img.data / bg
         info.update(noise_rel=sig)
@@ -354,7 +391,8 @@ def indents_options(o: dict) -> IndentsOptions:
     if not 0 <= na <= 1.6:
         raise MarkcalError(f"objective_na must be in (0, 1.6] (0: fitted) (got {na!r})")
     return IndentsOptions(kind=o["kind"] or None, pixel_size_um=o["pixel_size_um"] or None,
-                          channel=o["channel"] or None, load_mN=o["load_mN"] or None, objective_na=na or None)
+                          channel=o["channel"] or None, load_mN=o["load_mN"] or None, objective_na=na or None,
+                          optics_from=o.get("optics_from") or None)
 
 
 def read_indents_spec(path) -> tuple:
@@ -393,7 +431,7 @@ FLOW = FlowDescriptor(
     name="indents", help="micro-indentation arrays and imprints from AFM height maps and micrographs",
     claims=_claims, run=_run_descriptor, spec_name="array.toml", validate_options=indents_options,
     options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "objective_na": 0.0,
-             "no_report": False},
+             "optics_from": "", "no_report": False},
     key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
                  Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),
     tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0},

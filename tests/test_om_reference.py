@@ -1,0 +1,85 @@
+"""OM arrays near the resolution limit measured with the halo and crease of a reference micrograph of larger
+imprints under the same objective (``--optics-from``; issue 20)."""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from markcal.fixtures.indent_maps import AfmOptions, array_toml, render_afm, tiff_bytes
+from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
+from markcal.pipeline.cli import main
+from markcal.pipeline.flows.indents import IndentsOptions, read_array_spec, run_indents
+
+
+def _array(folder, seed, d_um):
+    """A 3 x 3 hard OM array (Airy NA 0.9, lines, one-sided shading, halo) and its spec; returns paths and truth."""
+    os.makedirs(folder, exist_ok=True)
+    r = render_micrograph(seed, MicrographOptions(rows=280, cols=280, grid=(3, 3, 8.0), d_um=d_um, na=0.9))
+    path, spec = os.path.join(folder, "om.tif"), os.path.join(folder, "a.toml")
+    with open(path, "wb") as fh:
+        fh.write(tiff_bytes(r.data, r.pixel_um))
+    with open(spec, "w") as fh:
+        fh.write(array_toml(3, 3, 8.0, d_um))
+    return path, spec, r.truth["imprints"]
+
+
+def _errors(res, truth):
+    t = res.indents
+    e = []
+    for ti in truth:
+        k = int(np.argmin(np.hypot(t["x_um"] - ti["x_um"], t["y_um"] - ti["y_um"])))
+        e.append((t["x_um"][k] - ti["x_um"], t["y_um"][k] - ti["y_um"], t["diameter_um"][k] - ti["d_um"]))
+    return 1000 * np.array(e)
+
+
+def test_1um_array_with_a_3um_reference_meets_the_goal(tmp_path):
+    """1 µm under NA 0.9 (2.7 Airy radii): with the halo and crease of a 3 µm array (another seed) held, every
+    diagonal within the issue's ±50 nm and the centres within 10 nm RMS. Measured (seeds 5003 / 5103):
+    d −20.5 to +5.4 nm and centre RMS 5.0 nm with the reference; +90.9 to +118.9 nm and 10.7 nm without."""
+    path, spec, truth = _array(tmp_path / "small", 5003, 1.0)
+    ref, _spec, _t = _array(tmp_path / "ref", 5103, 3.0)
+    res = run_indents([path], read_array_spec(spec), IndentsOptions(kind="om", optics_from=str(ref)))
+    e = _errors(res, truth)
+    assert len(e) == 9
+    assert np.all(np.abs(e[:, 2]) <= 50.0), e[:, 2]
+    assert np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)) <= 10.0
+    s = res.summary
+    assert s["optics_from"] == "om.tif" and s["n_near_resolution"] == 9
+    assert 0.0 < s["held_rim"] and 0.0 < s["held_rim_w"] and 0.0 < s["held_crease"] < 0.95
+
+
+def _cli(tmp_path, ref):
+    path, spec, _t = _array(tmp_path / "small", 5003, 1.0)
+    out = tmp_path / "out"
+    code = main(["indents", path, "--array", spec, "--optics-from", str(ref), "--out", str(out), "--quiet"])
+    return code, out
+
+
+def test_missing_reference_fails_alone(tmp_path, capsys):
+    code, out = _cli(tmp_path, tmp_path / "nothere.tif")
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and not out.exists()
+    assert err == [f"markcal: error: {tmp_path / 'nothere.tif'}: no such file"]
+
+
+def test_afm_map_as_reference_is_refused(tmp_path, capsys):
+    r = render_afm(1000, AfmOptions(size_px=128))
+    ref = tmp_path / "afm.tif"
+    ref.write_bytes(tiff_bytes(r.data, r.pixel_um, zunit="nm"))
+    code, out = _cli(tmp_path, ref)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and not out.exists()
+    assert len(err) == 1 and err[0].startswith(f"markcal: error: {ref}: optics reference: an AFM height map")
+
+
+def test_reference_without_an_array_is_refused(tmp_path, capsys):
+    """A micrograph of one imprint has no array to take the halo and crease from."""
+    r = render_micrograph(3000, MicrographOptions(rows=200, cols=200, d_um=4.0))
+    ref = tmp_path / "single.tif"
+    ref.write_bytes(tiff_bytes(r.data, r.pixel_um))
+    code, out = _cli(tmp_path, ref)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and not out.exists()
+    assert len(err) == 1 and err[0].startswith(f"markcal: error: {ref}: optics reference: ")
