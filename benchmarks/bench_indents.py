@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from markcal.fixtures.indent_maps import AfmOptions, OmOptions, array_toml, render_afm, render_om, tiff_bytes
-from markcal.pipeline.flows.indents import IndentsOptions, measure_file, read_array_spec, run_indents
+from markcal.pipeline.flows.indents import IndentsOptions, measure_file, optics_reference, read_array_spec, run_indents
 
 
 def _files(folder, r):
@@ -69,6 +69,9 @@ def main(argv=None):
     ap.add_argument("--om-hard-sizes", default="1,2,3", help="hard OM arrays: nominal sizes (µm), cycled over the seeds")
     ap.add_argument("--om-hard-objective-na", type=float, default=None,
                     help="hard OM arrays: measure with the objective's NA given (PSF held, not fitted)")
+    ap.add_argument("--om-hard-reference-um", type=float, default=None,
+                    help="hard OM arrays: measure with --optics-from a reference array of this size (seed + 100, "
+                         "same optics)")
     ap.add_argument("--om-speed-seeds", type=int, default=0,
                     help="time the 1 Mpx hard OM case of 1 µm imprints (Airy NA 0.9) on this many seeds from 5700")
     a = ap.parse_args(argv)
@@ -349,7 +352,9 @@ def _om_hard_sweep(a, tmp):
     sizes = [float(v) for v in a.om_hard_sizes.split(",")]
     optics = "Gaussian blur 1 px" if a.om_hard_na is None else f"Airy NA {a.om_hard_na}"
     print(f"\nhard OM arrays (micrograph renderer), seeds {s0}..{s0 + a.om_hard_seeds - 1}, 5 x 5 at 8 µm, "
-          f"480 x 480 at 0.1 µm, {optics}, measured with objective NA {a.om_hard_objective_na or 'fitted'}; goals: d within ±50 nm, centre RMS <= 10 nm, image bias <= 10 nm; "
+          f"480 x 480 at 0.1 µm, {optics}, measured with objective NA {a.om_hard_objective_na or 'fitted'}"
+          + (f", halo and crease from a {a.om_hard_reference_um:g} µm reference array (seed + 100)" if a.om_hard_reference_um else "")
+          + "; goals: d within ±50 nm, centre RMS <= 10 nm, image bias <= 10 nm; "
           f"load {' '.join(f'{v:.1f}' for v in os.getloadavg())}")
     print("seed nominal  n missed  centre_rms_nm  bias_x_nm  bias_y_nm  d_err_mean_nm  d_err_max_nm  cpu_s")
     allv, worst_bias = [], 0.0
@@ -364,8 +369,16 @@ def _om_hard_sweep(a, tmp):
         spec = os.path.join(tmp, "om_hard.toml")
         with open(spec, "w") as fh:
             fh.write(array_toml(5, 5, 8.0, nominal))
+        ref = None
+        if a.om_hard_reference_um:
+            rr = render_micrograph(seed + 100, MicrographOptions(rows=480, cols=480, grid=(5, 5, 8.0),
+                                                                 d_um=a.om_hard_reference_um, na=a.om_hard_na))
+            ref = os.path.join(tmp, "om_hard_reference.tif")
+            with open(ref, "wb") as fh:
+                fh.write(tiff_bytes(rr.data, rr.pixel_um))
+        opts = IndentsOptions(kind="om", objective_na=a.om_hard_objective_na, optics_from=ref)
         c0 = time.process_time()
-        f = measure_file(path, read_array_spec(spec), IndentsOptions(kind="om", objective_na=a.om_hard_objective_na))
+        f = measure_file(path, read_array_spec(spec), opts, held=optics_reference(ref, opts) if ref else None)
         cpu = time.process_time() - c0
         t = f.table
         e = []
