@@ -1,33 +1,22 @@
 """OM arrays with known optics (``objective_na``) and the analytic Jacobian of the OM dot model."""
 from __future__ import annotations
 
-import os
 
 import numpy as np
 import pytest
 
-from markcal.fixtures.indent_maps import array_toml, tiff_bytes
 from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
 from markcal.pipeline.flows.indents import IndentsOptions, indents_options, measure_file, read_array_spec
 from markcal.stages import indent_om
 from markcal.stages.errors import MarkcalError
 from markcal.stages.indent_om_fit import _OM_SHARED_STEP
+from om_arrays import errors_nm, write_hard_array
 
 
 def _hard_airy(tmp_path, seed, d_um, objective_na):
-    r = render_micrograph(seed, MicrographOptions(rows=280, cols=280, grid=(3, 3, 8.0), d_um=d_um, na=0.9))
-    path, spec = os.path.join(tmp_path, "a.tif"), os.path.join(tmp_path, "a.toml")
-    with open(path, "wb") as fh:
-        fh.write(tiff_bytes(r.data, r.pixel_um))
-    with open(spec, "w") as fh:
-        fh.write(array_toml(3, 3, 8.0, d_um))
+    path, spec, truth = write_hard_array(tmp_path, seed, d_um)
     f = measure_file(path, read_array_spec(spec), IndentsOptions(kind="om", objective_na=objective_na))
-    t = f.table
-    e = []
-    for ti in r.truth["imprints"]:
-        k = int(np.argmin(np.hypot(t["x_um"] - ti["x_um"], t["y_um"] - ti["y_um"])))
-        e.append((t["x_um"][k] - ti["x_um"], t["y_um"][k] - ti["y_um"], t["diameter_um"][k] - ti["d_um"]))
-    return 1000 * np.array(e), f
+    return errors_nm(f.table, truth), f
 
 
 def test_objective_na_holds_the_psf_at_the_airy_of_that_na(tmp_path):

@@ -6,10 +6,10 @@ import os
 import pytest
 
 from markcal.fixtures.indent_maps import AfmOptions, array_toml, render_afm, tiff_bytes
-from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
 from markcal.pipeline.flows.indents import IndentsOptions, read_array_spec, run_indents
 from markcal.reports.indents_report import indents_report_html
 from markcal.stages.indent_om import RESOLUTION_RADII, airy_radius_um, airy_sigma_um
+from om_arrays import write_hard_array
 
 WARNING = "near the resolution limit"
 
@@ -21,12 +21,7 @@ def test_airy_radius_is_rayleighs():
 
 
 def _run(tmp_path, d_um, na):
-    r = render_micrograph(5003, MicrographOptions(rows=280, cols=280, grid=(3, 3, 8.0), d_um=d_um, na=na))
-    path, spec = os.path.join(tmp_path, "a.tif"), os.path.join(tmp_path, "a.toml")
-    with open(path, "wb") as fh:
-        fh.write(tiff_bytes(r.data, r.pixel_um))
-    with open(spec, "w") as fh:
-        fh.write(array_toml(3, 3, 8.0, d_um))
+    path, spec, _truth = write_hard_array(tmp_path, 5003, d_um, na)
     return run_indents([path], read_array_spec(spec), IndentsOptions(kind="om"))
 
 
