@@ -410,13 +410,18 @@ def om_halo_crease(img: np.ndarray, pixel_um: float, candidates: list, noise_rel
     Raises
     ------
     ValueError
-        Fewer than three dots measured.
+        Fewer than three dots measured, or imprints themselves near the resolution limit.
     """
     if len(candidates) < 3:
         raise ValueError(f"{len(candidates)} dot(s) found: at least 3 are needed")
     out, _misfit, s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, 8, True, None)
-    if sum(m is not None for m in out) < 3:
+    d = [m.diameter_um for m in out if m is not None]
+    if len(d) < 3:
         raise ValueError("fewer than 3 imprints measured")
+    r = airy_radius_um(float(s[_PSF]))
+    if np.median(d) < RESOLUTION_RADII * r:
+        raise ValueError(f"its imprints ({np.median(d):.2f} µm) are near the resolution limit too (under "
+                         f"{RESOLUTION_RADII:g} x {r:.2f} µm): use larger ones")
     return {k: float(s[j]) for k, j in _HELD.items() if j < len(s)}
 
 

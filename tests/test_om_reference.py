@@ -61,3 +61,12 @@ def test_reference_without_an_array_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and not out.exists()
     assert len(err) == 1 and err[0].startswith(f"markcal: error: {ref}: optics reference: ")
+
+
+def test_reference_near_the_resolution_limit_is_refused(tmp_path, capsys):
+    """A reference of 1 µm imprints cannot give what the 1 µm image lacks."""
+    ref, _spec, _t = write_hard_array(tmp_path / "ref", 5104, 1.0)
+    code, out = _cli(tmp_path, ref)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1 and not out.exists()
+    assert len(err) == 1 and "near the resolution limit too" in err[0] and err[0].startswith(f"markcal: error: {ref}: ")
