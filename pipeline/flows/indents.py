@@ -131,12 +131,18 @@ def optics_reference(path, opt: IndentsOptions, say=lambda m: None) -> dict:
     Raises
     ------
     MarkcalError
-        The file is not a light micrograph of at least three imprints.
+        The file is not a light micrograph of an array of at least three imprints larger than the resolution
+        limit (an AFM map, single imprints, too few or too small ones).
     """
     img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     if img.kind != "om":
         raise MarkcalError("optics reference: an AFM height map; the halo and crease come from a light micrograph",
                            path)
+    single, _bar = measure_micrograph(img.data, img.pixel_um)      # the flow's own test for single imprints
+    if single:
+        raise MarkcalError(f"optics reference: a micrograph of {len(single)} single imprint(s) of "
+                           f"{np.median([m.d_um for m in single]):.1f} µm, not an array: the halo and crease come "
+                           "from an OM array of imprints", path)
     say(f"{os.path.basename(str(path))}: measuring the optics reference (halo and crease)")
     bg = ind.om_background(img.data, img.pixel_um)
     cands, sig = ind.detect_dots(img.data, img.pixel_um, background=bg)
