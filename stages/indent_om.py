@@ -16,7 +16,8 @@ from scipy.special import j1
 
 from .indent_geometry import Imprint, diagonals as _diagonals
 from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _OM_SHARED_STEP, CREASE_W_UM, _dev_shared,
-                            _om_block_fit, _on_patches, _om_joint_fit, _om_own_fit)
+                            _om_block_fit, _on_patches, _om_joint_fit, _om_own_fit,
+                            soft_l1_cost)
 from .indent_om_kernel import om_dev
 from .quantile import median_filter
 
@@ -383,9 +384,7 @@ def measure_om_array(img: np.ndarray, pixel_um: float, candidates: list, noise_r
     """
     if len(candidates) < 3:
         return [measure_om(img, pixel_um, r, c, rad, noise_rel, background, psf_um) for r, c, rad in candidates]
-    out, _misfit, _s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, None,
-                                      psf_um, held)
-    return out
+    return _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, psf_um, held)[0]
 
 
 #: what :func:`om_halo_crease` passes on: shared-parameter indices of the halo (rim height, rim width in
@@ -414,7 +413,7 @@ def om_halo_crease(img: np.ndarray, pixel_um: float, candidates: list, noise_rel
     """
     if len(candidates) < 3:
         raise ValueError(f"{len(candidates)} dot(s) found: at least 3 are needed")
-    out, _misfit, s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, 8, True, None)
+    out, s = _om_array_pass(img, pixel_um, candidates, noise_rel, background, 8, True)
     d = [m.diameter_um for m in out if m is not None]
     if len(d) < 3:
         raise ValueError("fewer than 3 imprints measured")
@@ -460,7 +459,7 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=(), crease=None):
     s : ndarray (shared parameters of the chosen model), g : ndarray (k, 7), extended : bool
     """
     s_p, g_p, res_p = _om_joint_fit(patches, g0, d0, s_plain, noise_rel, fixed=fixed)
-    g_p = _one_branch(g_p, float(np.median(g_p[:, 3])))    # the plain model does not see the branch
+    g_p = _one_branch(g_p)                      # the plain model does not see the branch
     n = sum(r.size for r in res_p)
 
     def ext_fit(line0, max_nfev):
@@ -498,24 +497,31 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=(), crease=None):
     return s_e, g_e, True
 
 
-def _one_branch(g, theta_ref):
-    """Own parameters ``g`` (k, 7) with each orientation turned by a multiple of 90 deg to within 45 deg of
-    ``theta_ref``: the same square footprint, but facet i of every dot then faces the same way, as the shared
+def _one_branch(g, ref=None):
+    """Own parameters ``g`` (k, 7) with each orientation turned by a multiple of 90 deg to within 45 deg of the
+    common one: the same square footprint, but facet i of every dot then faces the same way, as the shared
     one-sided shading (quadrants of the dot's frame) assumes. Found on a render (seed 6007, 1 µm): 6 of 25 dots
-    had converged 86 deg off the others, their centres pulled 27-37 nm towards the darker facet."""
+    had converged 86 deg off the others, their centres pulled 27-37 nm towards the darker facet.
+
+    The common orientation is that of the rows ``ref`` of ``g`` (default: all): their mean on the 90-degree
+    circle (the argument of the mean of exp(4 i theta), / 4; a plain median of angles on two branches is not
+    on either), put on the branch of the first of them.
+    """
     g = np.array(g, dtype=float)
     q = np.pi / 2
-    g[:, 3] = theta_ref + np.mod(g[:, 3] - theta_ref + q / 2, q) - q / 2
+    th = g[:, 3] if ref is None else g[ref, 3]
+    common = float(np.angle(np.mean(np.exp(4j * th)))) / 4
+    common += q * np.round((th[0] - common) / q)
+    g[:, 3] = common + np.mod(g[:, 3] - common + q / 2, q) - q / 2
     return g
 
 
-def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, n_shared, psf_um=None,
+def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, psf_um=None,
                    held=None):
-    """One pass of :func:`measure_om_array` with ``n_shared`` shared parameters (None: chosen by
-    :func:`_choose_model` on the typical dots); ``held``: :func:`om_halo_crease` values held.
+    """:func:`measure_om_array` (the shared model chosen by :func:`_choose_model` on the typical dots);
+    ``held``: :func:`om_halo_crease` values held.
 
-    Returns the imprints (or None), the median residual RMS inside the dots in noise levels and the shared
-    parameters.
+    Returns the imprints (or None) and the shared parameters.
     """
     radii = np.array([rad for _r, _c, rad in candidates], dtype=float)
     big = radii > 4 * np.median(radii)            # a stain or a shading, not a mark of this array
@@ -524,8 +530,8 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     ok = [i for i, p in enumerate(patches) if p is not None and p.ok]
     out = [None] * len(candidates)
     if not ok:
-        return out, 0.0, None
-    s = np.concatenate([_OM_S0, np.zeros((n_shared or _NS_PLAIN) - len(_OM_S0))])
+        return out, None
+    s = _OM_S0.copy()
     s[0] = float(np.clip(1 - np.median([patches[i].patch.min() for i in ok]), 0.1, 0.9))
     fixed = _fix_psf(s, psf_um)
     held = held or {}
@@ -545,17 +551,15 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
     order = [ok[j] for j in np.argsort(np.abs(rad - np.median(rad)) / np.median(rad))]
     # enough pixels to pin the shared parameters down, few enough to keep the joint fit cheap
     n_joint = int(np.clip(8000 // np.median([patches[i].patch.size for i in ok]), 3, n_joint))
-    extended_fitted = False
-    if n_shared is None:
-        joint = order[:n_joint]
-        s, g, extended_fitted = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
-                                   [starts[i][1] for i in joint], s, noise_rel, fixed, held.get("crease"))
-        for i, gi in zip(joint, g):
-            starts[i] = (gi, starts[i][1])
+    joint = order[:n_joint]
+    s, g, extended_fitted = _choose_model([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+                                          [starts[i][1] for i in joint], s, noise_rel, fixed, held.get("crease"))
+    for i, gi in zip(joint, g):
+        starts[i] = (gi, starts[i][1])
     # every dot's frame on the typical dots' branch, so the shared shading and creases fall on the same facets
-    theta_ref = float(np.median([starts[i][0][3] for i in order[:n_joint]]))
-    for i in ok:
-        starts[i] = (_one_branch(starts[i][0][None], theta_ref)[0], starts[i][1])
+    g_all = _one_branch([starts[i][0] for i in order], ref=slice(0, n_joint))
+    for i, gi in zip(order, g_all):
+        starts[i] = (gi, starts[i][1])
     excluded = set()
     for _round in range(3):
         joint = [i for i in order if i not in excluded][:n_joint]
@@ -583,20 +587,18 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         excluded |= bad
     # final: the shared parameters from every dot the shared model describes, all jointly
     good = [i for i in ok if fits[i][3] <= limit]
-    misfit = float(np.median([fits[i][3] for i in good])) / max(noise_rel, 1e-12)
     if refine_all and len(good) > len(joint):
         bp, bg0, bd = [patches[i] for i in good], [fits[i][0] for i in good], [starts[i][1] for i in good]
         if len(s) > _NS_PLAIN and np.median([p.ss for p in bp]) > 1 and _NS_PLAIN not in fixed:
             # on small dots (< 16 px) the crease darkness is weakly determined (a line on the edge
             # looks like a wider dot, the ridges are short): profile it over every dot, a few steps
             # at each of a few values (each value started from the previous one's fit), then free it
-            f = max(3 * noise_rel, 0.005)
             best = None
             sp, gp = s, bg0
             for k, line in enumerate(CREASE_PROFILE):
                 sp, gp, rp = _om_block_fit(bp, gp, bd, np.where(np.arange(len(s)) == _NS_PLAIN, line, sp), noise_rel,
                                            n_iter=CREASE_STEPS[k > 0], pin=(_NS_PLAIN, line), fixed=fixed)
-                c = float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in rp))
+                c = soft_l1_cost(rp, noise_rel)
                 if best is None or c < best[0]:
                     best = (c, sp, gp)
             s, bg0 = best[1], list(best[2])
@@ -604,10 +606,10 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:
-        return out, misfit, s
+        return out, s
     for i in good:
         gi, _r, res, _c = fits[i]
         if gi[2] < 0.25:
             continue
         out[i] = _om_imprint(gi, s, res, patches[i].patch.size)
-    return out, misfit, s
+    return out, s

@@ -97,6 +97,12 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
     return s, g, res
 
 
+def soft_l1_cost(res, noise_rel):
+    """The solvers' robust cost of residual arrays: soft-L1 with the scale 3 noise levels (at least 0.005)."""
+    f = max(3 * noise_rel, 0.005)
+    return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
+
+
 def _on_patches(fn, n):
     """``fn(i)`` for every patch index, the patches split in two halves on two threads when there are
     several (the model's kernel and the FFTs release the GIL)."""
@@ -141,9 +147,6 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     nf = len(free)
     targets = [p.patch.ravel() for p in patches]
 
-    def cost_of(res):
-        return float(sum(np.sum(2 * f * f * (np.sqrt(1 + (r / f) ** 2) - 1)) for r in res))
-
     lam = 1e-3
     res = None
     for _it in range(n_iter):
@@ -163,7 +166,7 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
         U, W, ga = [t[1] for t in terms], [t[2] for t in terms], [t[3] for t in terms]
         V = sum((t[4] for t in terms), np.zeros((nf, nf)))
         gb = sum((t[5] for t in terms), np.zeros(nf))
-        cost = cost_of(res)
+        cost = soft_l1_cost(res, noise_rel)
         improved = False
         for _try in range(5):
             uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
@@ -183,7 +186,7 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
                 res_new[i] = patches[i].model(g_new[i], s_new).ravel() - targets[i]
 
             _on_patches(residual, len(patches))
-            c_new = cost_of(res_new)
+            c_new = soft_l1_cost(res_new, noise_rel)
             if c_new < cost:
                 improved = True
                 break
