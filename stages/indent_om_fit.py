@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from .threads import map_on_threads, thread_count
+from .threads import map_on_threads
 
 #: OM model parameters. Per dot: centre (µm), diagonal d (µm), orientation (rad), background
 #: level, gradient x, y (1/µm). Shared by the dots of one micrograph (one objective, one
@@ -31,7 +31,6 @@ CREASE_W_UM = 0.06
 #: the plain model uses the first five shared parameters; the extended one (lines, one-sided
 #: shading) all of them
 _NS_PLAIN = 5
-
 
 
 def _dev_shared(ns):
@@ -106,11 +105,11 @@ def soft_l1_cost(res, noise_rel):
 def _on_patches(fn, n):
     """``fn(i)`` for every patch index, the patches split in two halves on two threads when there are
     several (the model's kernel and the FFTs release the GIL)."""
-    if n < 4 or thread_count(2) < 2:
+    if n < 4:
         for i in range(n):
             fn(i)
         return
-    map_on_threads(lambda part: [fn(i) for i in part], [range(0, n, 2), range(1, n, 2)])
+    map_on_threads(lambda part: [fn(i) for i in part], [range(0, n, 2), range(1, n, 2)])   # here on one thread
 
 
 def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):

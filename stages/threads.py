@@ -38,8 +38,8 @@ _PREFIX = "markcal-pool"
 def _pool(workers: int) -> ThreadPoolExecutor:
     """The process's pool, kept for its life (a fresh pool costs about 0.2 ms, which counts in solvers
     that split every iteration); a forked child makes its own."""
-    pool = _POOLS.get(os.getpid())
-    if pool is None or pool._max_workers < workers:
+    pool, size = _POOLS.get(os.getpid(), (None, 0))
+    if size < workers:
         _POOLS.clear()
-        pool = _POOLS[os.getpid()] = ThreadPoolExecutor(workers, thread_name_prefix=_PREFIX)
+        pool, size = _POOLS[os.getpid()] = ThreadPoolExecutor(workers, thread_name_prefix=_PREFIX), workers
     return pool
