@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "lm_soft_l1", "plane_moments",
+__all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "inside_polygon", "lm_soft_l1", "plane_moments",
            "planes_from_moments", "robust_plane", "wrap45"]
 
 #: per-imprint fields (``Imprint`` attributes that go into indents.csv)
@@ -85,6 +85,29 @@ class Imprint:
 
 
 # ----------------------------------------------------------------------------- helpers
+
+def inside_polygon(rows, cols, shape) -> np.ndarray:
+    """Pixel centres inside a closed polygon (even-odd rule), as a boolean mask of ``shape``.
+
+    A scanline fill: every edge's crossings with the pixel rows toggle the columns at and right of
+    the crossing. O(vertices x rows + pixels), where ``skimage.draw.polygon`` tests every pixel of
+    the bounding box against every edge (0.2-0.8 s for a 256 x 256 imprint's boundary).
+    """
+    r0, c0 = np.asarray(rows, float), np.asarray(cols, float)
+    r1, c1 = np.roll(r0, -1), np.roll(c0, -1)
+    lo, hi = np.minimum(r0, r1), np.maximum(r0, r1)
+    ny, nx = shape
+    first = np.clip(np.ceil(lo), 0, ny).astype(int)            # pixel rows i with lo <= i < hi
+    last = np.clip(np.ceil(hi), 0, ny).astype(int)
+    n = last - first
+    edge = np.repeat(np.arange(len(r0)), n)
+    row = first[edge] + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    col = c0[edge] + (row - r0[edge]) * (c1[edge] - c0[edge]) / (r1[edge] - r0[edge])
+    start = np.clip(np.ceil(col), 0, nx).astype(int)
+    toggle = np.zeros((ny, nx + 1), np.int32)
+    np.add.at(toggle, (row, start), 1)
+    return (np.cumsum(toggle[:, :nx], axis=1) % 2).astype(bool)
+
 
 def wrap45(a_deg):
     return (a_deg + 45.0) % 90.0 - 45.0

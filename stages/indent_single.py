@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
-from .indent_geometry import circle_fit, diagonals, robust_plane
+from .indent_geometry import circle_fit, diagonals, inside_polygon, robust_plane
 from .level import Levelled, _remove_scars, noise_nm, poly_surface
 
 __all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "level_single", "measure_single", "facet_apex_nm",
@@ -367,10 +367,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         if sel.any():
             bows[j] = float(np.median(off[sel])) / (d_um / 2)
     # pile-up outside the contact boundary
-    from skimage.draw import polygon
-    inside = np.zeros(zr.shape, bool)
-    pr, pc = polygon(cont[:, 0], cont[:, 1], zr.shape)                # pixel centres inside the boundary
-    inside[pr, pc] = True
+    inside = inside_polygon(cont[:, 0], cont[:, 1], zr.shape)         # pixel centres inside the boundary
     outer = fin & ~inside & (zs > max(3 * noise, 1.0))
     pileup = float(zs[fin & ~inside].max()) if (fin & ~inside).any() else float("nan")
     vol = float(zr[outer].sum() * pixel_um * pixel_um * 1e-3)
