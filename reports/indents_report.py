@@ -185,7 +185,8 @@ def indents_report_html(res) -> str:
                f"{num(s['mean_diameter_um'], 'µm')}"
                + (f"; {s['n_out_of_tolerance']} outside ±{s['tolerance_um'] * 1000:.0f} nm of the nominal"
                   if s["n_out_of_tolerance"] is not None else "; no array spec, so no nominal size to judge against")
-               + (f"; {s['n_low_hd']} with H/D &lt; {s['min_hd']}" if s["n_low_hd"] is not None else "") + ".")
+               + (f"; {s['n_low_hd']} with H/D &lt; {s['min_hd']}" if s["n_low_hd"] is not None else "")
+               + (f"; {s['n_missing']} of {s['n_expected']} expected not found" if s["n_missing"] else "") + ".")
     parts.append(f'<div class="verdict">{verdict}</div>')
     rows = [("files measured / failed", f"{s['n_files_ok']} / {s['n_files_failed']}"),
             ("kinds", esc(", ".join(s["kinds"]))),

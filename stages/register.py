@@ -45,8 +45,11 @@ def lattice_coords(uv_mm: np.ndarray, pitch_mm: float, pitch_tolerance: float = 
     n = len(uv)
     if n < 4:
         raise MarkcalError(f"only {n} fiducials detected: cannot identify the grid")
-    dist, nb = cKDTree(uv).query(uv, k=5)
-    nn = np.median(dist[:, 1])
+    dist, nb = cKDTree(uv).query(uv, k=min(n, 5))
+    # the pitch from the neighbours at about one pitch: a few stray detections between the
+    # marks (dust, pits) have nearer neighbours and must not decide it
+    step = dist[:, 1:][np.abs(dist[:, 1:] / pitch_mm - 1) < 0.25]
+    nn = np.median(step) if len(step) >= n else np.median(dist[:, 1])
     if abs(nn / pitch_mm - 1) > pitch_tolerance:
         raise MarkcalError(f"fiducial pitch in the scan is {nn:.3f} mm but the plate spec says "
                            f"{pitch_mm:.3f} mm")

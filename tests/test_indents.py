@@ -417,3 +417,39 @@ def test_om_1um_array_with_lines_and_one_sided_shading():
     assert np.all(np.abs(e[:, 2]) <= 55.0)
     assert np.sqrt(np.mean(e[:, 0] ** 2 + e[:, 1] ** 2)) <= 12.0
     assert np.all(np.abs(e[:, :2].mean(axis=0)) <= 3.0)
+
+
+def test_missing_imprints_fail_the_verdict(tmp_path, afm_pair):
+    """A map whose centre imprint is gone (its patch replaced by bare surface): measured, but the verdict fails."""
+    r, _path, spec = afm_pair[1]
+    z = np.array(r.data, float)
+    i = r.truth["imprints"][4]
+    c, w, h = int(round(i["x_um"] / r.pixel_um)), int(round(2.5 / r.pixel_um)), int(round(4.0 / r.pixel_um))
+    row = int(round(i["y_um"] / r.pixel_um))
+    z[row - w:row + w, c - w:c + w] = z[row + h - w:row + h + w, c + h - w:c + h + w]   # half a pitch off: bare
+    path = tmp_path / "gone.tif"
+    path.write_bytes(tiff_bytes(z.astype(np.float32), r.pixel_um, zunit="nm"))
+    out = tmp_path / "out"
+    rc = main(["indents", str(path), "--array", spec, "-o", str(out), "--no-report", "--quiet"])
+    s = json.loads((out / "summary.json").read_text())
+    assert s["n_imprints"] == 8 and s["n_missing"] == 1 and s["missing"] == ["gone.tif#4"]
+    assert s["verdict"] == "fail" and "n_missing 1 > 0" in s["failed_checks"]
+    assert rc == 4
+
+
+def test_stray_dots_between_imprints_are_left_off_the_grid():
+    """Dust or pits between the imprints of a 5 x 5 array: every imprint keeps its node, the strays none."""
+    from markcal.stages.indent_array import index_array
+    rng = np.random.default_rng(8)
+    pitch = 8.0
+    rr, cc = np.mgrid[0:5, 0:5]
+    th = np.radians(1.2)
+    grid = np.column_stack([(cc.ravel() - 2) * pitch, (rr.ravel() - 2) * pitch]) + rng.normal(0, 0.04, (25, 2))
+    grid = grid @ np.array([[np.cos(th), np.sin(th)], [-np.sin(th), np.cos(th)]]).T + [24.0, 23.0]
+    # 7 strays, each 0.4-0.6 pitch from the nearest node in both directions, some a few µm from an imprint
+    stray = grid[rng.choice(25, 7, replace=False)] + rng.choice([-1, 1], (7, 2)) * rng.uniform(0.4, 0.6, (7, 2)) * pitch
+    xy = np.vstack([grid, stray])
+    fit = index_array(xy, 5, 5, pitch)
+    assert np.array_equal(fit.row[:25], rr.ravel()) and np.array_equal(fit.col[:25], cc.ravel())
+    assert np.all(fit.row[25:] == -1) and fit.stray[25:].all() and not fit.stray[:25].any()
+    assert np.nanmax(np.hypot(fit.dx_um[:25], fit.dy_um[:25])) < 0.2

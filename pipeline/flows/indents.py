@@ -259,7 +259,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         n_exp = spec.rows * spec.cols
         if on.sum() < max(1, n_exp / 2):
             raise MarkcalError(f"only {int(on.sum())} of {n_exp} imprints of the array spec found")
-        off = n - int(on.sum())
+        off = n - int(on.sum()) - int(fit.stray.sum())     # on nodes beyond the spec's array: the spec is too small
         if off > max(2, 0.2 * n_exp):
             raise MarkcalError(f"{n} imprints found but the array spec has {spec.rows} x {spec.cols}: "
                                "the spec does not match the image")
@@ -439,6 +439,8 @@ FLOW = FlowDescriptor(
     options={"kind": "", "pixel_size_um": 0.0, "channel": "", "load_mN": 0.0, "objective_na": 0.0,
              "optics_from": "", "no_report": False},
     key_figures=(Figure("n_imprints", "imprints"), Figure("mean_diameter_um", "mean imprint diameter", "µm"),
-                 Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D")),
-    tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0},
+                 Figure("n_out_of_tolerance", "imprints out of tolerance"), Figure("n_low_hd", "imprints with low H/D"),
+                 Figure("n_missing", "expected imprints not found")),
+    # an array with imprints not found fails: they may be unmeasured, and a missing row shifts the indexing
+    tolerances={"max_n_out_of_tolerance": 0, "max_n_low_hd": 0, "max_n_missing": 0},
     trends=("mean_diameter_um",), cost=8.0)
