@@ -339,7 +339,12 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     pit = lab == k
     # far field: robust plane outside the grown pit (pile-up and dust rejected by the robust loss)
     grow = max(3, int(0.15 * np.sqrt(pit.sum())))
-    far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
+    # pile-up beside the edges can cover half the far field of an imprint that fills the map: left out
+    # with everything standing above the surface (the map is levelled), grown by 3 px
+    bump = ndimage.binary_dilation(zs > thr, iterations=3)
+    far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0) & ~bump
+    if far.sum() < 30:
+        far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
     if far.sum() < 30:
         far = fin & ~pit
     if far.sum() < 12:
