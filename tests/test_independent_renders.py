@@ -1,0 +1,66 @@
+"""The indents flow on the two renderers written independently of markcal's model, against their truth.
+
+fixtures/indent_single_ruled (AFM, one imprint: ruled facets to bowed edges, pile-up lobes, ball-
+blunted indenter, sphere + cone tip, scanner artefacts) and fixtures/indent_om_aperture (OM, 5 x 5
+arrays: aperture-model shading, dark ridge and edge lines, halo, Airy NA 0.9, noise). Tolerances are
+the goals of benchmarks/bench_independent.py. AFM seeds 2 and 10 are left out: their pile-up lobes
+run off the field.
+"""
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from markcal.fixtures.indent_om_aperture import render_om_aperture, write_om_aperture
+from markcal.fixtures.indent_single_ruled import render_single_ruled, write_single_ruled
+from markcal.pipeline.config import read_array_spec
+from markcal.pipeline.flows.indents import IndentsOptions, run_indents
+
+
+def _corners_um(tab, k):
+    """Corners from indents.csv: centre, orientation_deg (direction of diagonal 1), diag1_um, diag2_um."""
+    o = math.radians(tab["orientation_deg"][k])
+    e1, e2 = np.array([math.cos(o), math.sin(o)]), np.array([-math.sin(o), math.cos(o)])
+    c = np.array([tab["x_um"][k], tab["y_um"][k]])
+    m1, m2 = tab["diag1_um"][k], tab["diag2_um"][k]
+    return np.array([c + m1 / 2 * e1, c + m2 / 2 * e2, c - m1 / 2 * e1, c - m2 / 2 * e2])
+
+
+@pytest.mark.parametrize("seed,margin", [(5, None), (6, 3.0)])
+def test_single_ruled_imprint_against_truth(tmp_path, seed, margin):
+    r = render_single_ruled(seed, size_px=256, corner_margin_px=margin)
+    t, px = r.truth, r.pixel_um
+    gsf, _ = write_single_ruled(r, str(tmp_path), "map")
+    tab = run_indents([gsf], None, IndentsOptions(load_mN=500.0)).indents
+    assert len(tab["x_um"]) == 1                                         # one imprint, nothing else
+    # goal: mean diagonal within 0.5 % or 1 px, whichever is larger
+    assert abs(tab["d_um"][0] - t["d_mean_um"]) <= max(0.005 * t["d_mean_um"], px)
+    # goal: depth within 1 % of the true floor (lowest point of the blunted surface)
+    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
+    # goal: area within 1 % (markcal's area: inside where the surface meets the original level)
+    assert abs(tab["area_um2"][0] / t["area_below_original_level_um2"] - 1) <= 0.01
+    # goal: every corner within 1.5 px (best assignment of measured to true corners)
+    mc = _corners_um(tab, 0)
+    tc = np.array([[c["x_um"], c["y_um"]] for c in t["corners"]])
+    worst = min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4)))
+    assert worst <= 1.5 * px
+
+
+def test_om_aperture_array_against_truth(tmp_path):
+    r = render_om_aperture(3, 3.0, size_px=480, pixel_um=0.1, tie_lines=True)
+    tif, toml = write_om_aperture(r, str(tmp_path), "om")
+    tab = run_indents([tif], read_array_spec(toml)).indents
+    imps = r.truth["imprints"]
+    txy = np.array([[i["x_um"], i["y_um"]] for i in imps])
+    d_err, c_err = {}, {}
+    for x, y, dm in zip(tab["x_um"], tab["y_um"], tab["diameter_um"]):
+        j = int(np.argmin(np.hypot(*(txy - (x, y)).T)))
+        assert j not in d_err and np.hypot(*(txy[j] - (x, y))) < 1.0    # no stray or doubled imprint
+        d_err[j] = 1e3 * (dm - imps[j]["d_um"])
+        c_err[j] = 1e3 * (np.array([x, y]) - txy[j])
+    assert len(d_err) == 25                                              # goal: all 25 found
+    assert max(abs(v) for v in d_err.values()) <= 50.0                   # goal: every d within +-50 nm
+    e = np.array(list(c_err.values()))
+    assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) <= 10.0              # goal: centre RMS <= 10 nm
+    assert np.hypot(*e.mean(axis=0)) <= 10.0                             # goal: image-wide bias <= 10 nm
