@@ -516,6 +516,34 @@ def _one_branch(g, ref=None):
     return g
 
 
+#: restart of the shared fit (:func:`_unless_rim_under_resolution`): the dots at this fraction of their size
+RESTART_SIZE = 0.7
+
+
+def _unless_rim_under_resolution(patches, g, d0, s, res, noise_rel, fixed):
+    """The joint fit of every dot again from smaller dots, when its rim is narrower than half the blur.
+
+    Near the resolution limit the fit can stop in a second minimum: dots up to 1.5 x their size, lighter
+    inside, with a bright rim narrower than the PSF just outside them (found on an independent render of
+    1 um imprints: every diagonal +480-550 nm, rim 0.05 half-diagonals). Restarted from dots at
+    :data:`RESTART_SIZE` of that size, the shared parameters at their defaults, the fit reached a lower cost
+    there (12.9 against 14.4) and d within 6 %. The lower of the two costs is kept.
+    """
+    d_typ = float(np.median([gi[2] for gi in g]))
+    if s[3] * d_typ / 2 >= 0.5 * s[4] or _HELD["rim_w"] in fixed:
+        return s, g, res
+    s0 = _OM_S0.copy() if len(s) == _NS_PLAIN else _extended(_OM_S0)
+    s0[4] = s[4]
+    if len(s) > _NS_PLAIN:
+        s0[_NS_PLAIN] = CREASE_START
+    s0[list(fixed)] = s[list(fixed)]
+    g0 = [np.r_[gi[:2], gi[2] * RESTART_SIZE, gi[3:]] for gi in g]
+    s1, g1, res1 = _om_block_fit(patches, g0, d0, s0, noise_rel, fixed=fixed)
+    if soft_l1_cost(res1, noise_rel) < soft_l1_cost(res, noise_rel):
+        return s1, g1, res1
+    return s, g, res
+
+
 def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, refine_all, psf_um=None,
                    held=None):
     """:func:`measure_om_array` (the shared model chosen by :func:`_choose_model` on the typical dots);
@@ -612,6 +640,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
                     best = (c, sp, gp)
             s, bg0 = best[1], list(best[2])
         s, g, res = _om_block_fit(bp, bg0, bd, s, noise_rel, fixed=fixed)
+        s, g, res = _unless_rim_under_resolution(bp, g, bd, s, res, noise_rel, fixed)
         for i, gi, r in zip(good, g, res):
             fits[i] = (gi, 0.0, r, 0.0)
     if s[0] + max(s[1], 0) < 0.08 or s[4] > 0.45:

@@ -64,3 +64,21 @@ def test_om_aperture_array_against_truth(tmp_path):
     e = np.array(list(c_err.values()))
     assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) <= 10.0              # goal: centre RMS <= 10 nm
     assert np.hypot(*e.mean(axis=0)) <= 10.0                             # goal: image-wide bias <= 10 nm
+
+
+def test_om_aperture_1um_at_65nm_pixels_leaves_the_sub_resolution_rim(tmp_path):
+    """1 µm imprints at 0.065 µm pixels: the joint fit had stopped with a bright rim narrower than the PSF
+    around dots 1.25 x too large (every diagonal +150 to +330 nm, centres 19.8 nm RMS). The restart from
+    smaller dots finds the lower minimum. Tolerances: every diagonal within ±100 nm (at 1 µm under NA 0.9
+    the ±50 nm goal is not met from the image alone: docs/indents.md), centres the goal's 10 nm RMS."""
+    r = render_om_aperture(1, 1.0, size_px=739, pixel_um=0.065)
+    tif, toml = write_om_aperture(r, str(tmp_path), "om65")
+    tab = run_indents([tif], read_array_spec(toml)).indents
+    imps = r.truth["imprints"]
+    txy = np.array([[i["x_um"], i["y_um"]] for i in imps])
+    j = [int(np.argmin(np.hypot(*(txy - (x, y)).T))) for x, y in zip(tab["x_um"], tab["y_um"])]
+    assert sorted(j) == list(range(25))
+    d_err = 1e3 * (np.asarray(tab["diameter_um"]) - np.array([imps[k]["d_um"] for k in j]))
+    assert np.abs(d_err).max() <= 100.0
+    c_err = 1e3 * (np.column_stack([tab["x_um"], tab["y_um"]]) - txy[j])
+    assert np.sqrt(np.mean(np.sum(c_err ** 2, axis=1))) <= 10.0
