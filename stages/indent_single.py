@@ -233,14 +233,17 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
     if use.sum() < 15:
         return None
     s, t, z = s[use], t[use], z[use]
-    best = None
-    for t0 in np.arange(-0.75, 0.76, 0.05):
-        a = np.column_stack([np.ones_like(s), s - length, np.abs(t - t0), t - t0])
-        k, ssr, *_ = np.linalg.lstsq(a, z, rcond=None)
-        ssr = float(ssr[0]) if len(ssr) else float(np.sum((a @ k - z) ** 2))
-        if best is None or ssr < best[0]:
-            best = (ssr, k)
-    k = best[1]
+    # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
+    t0 = np.arange(-0.75, 0.76, 0.05)[:, None]
+    a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s - length, (len(t0), len(s))),
+                  np.abs(t - t0), t - t0], axis=-1)
+    ata = np.einsum("kni,knj->kij", a, a)
+    atz = np.einsum("kni,n->ki", a, z)
+    try:
+        k_all = np.linalg.solve(ata, atz[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    k = k_all[int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))]
     if not (k[1] > 0.2 * slope_floor and k[2] > 0):
         return None
     at = length - k[0] / k[1]
