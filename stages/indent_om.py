@@ -525,9 +525,9 @@ def _unless_rim_under_resolution(patches, g, d0, s, res, noise_rel, fixed):
 
     Near the resolution limit the fit can stop in a second minimum: dots up to 1.5 x their size, lighter
     inside, with a bright rim narrower than the PSF just outside them (found on an independent render of
-    1 um imprints: every diagonal +480-550 nm, rim 0.05 half-diagonals). Restarted from dots at
-    :data:`RESTART_SIZE` of that size, the shared parameters at their defaults, the fit reached a lower cost
-    there (12.9 against 14.4) and d within 6 %. The lower of the two costs is kept.
+    1 um imprints with pits between them: diagonals +550 nm on average, rim 0.05 half-diagonals). Restarted
+    from dots at :data:`RESTART_SIZE` of that size, the shared parameters at their defaults, the fit reached a
+    lower cost there (12.9 against 14.4). The lower of the two costs is kept.
     """
     d_typ = float(np.median([gi[2] for gi in g]))
     if s[3] * d_typ / 2 >= 0.5 * s[4] or _HELD["rim_w"] in fixed:

@@ -213,8 +213,8 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
     """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
 
     The pixels of the last 9 px before the coarse corner (``length``), within 3 px of the ray and below
-    the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + e t (s along,
-    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b (s) crosses 0 at the
+    the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
+    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses 0 at the
     corner. Fitted to the pixels themselves: an interpolated profile along the valley rounds its kink and
     reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg.
     Returns None when the pixels do not carry such a fit.
@@ -253,10 +253,13 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
 def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr=None):
     """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
 
-    ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``).
+    ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``); ``zr``: the
+    levelled heights themselves.
 
-    The heights on the last few pixels before the coarse corner are fitted by a straight
-    line; its zero crossing is the corner (where the surface meets the original level).
+    The ray is aimed along the valley between the two facets; the corner (where the valley meets the
+    original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
+    Without ``zr``, or where that fit fails, a straight line through the interpolated profile of the last
+    few pixels before the coarse corner gives it.
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
