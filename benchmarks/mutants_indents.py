@@ -102,7 +102,7 @@ MUTANTS_INDENTS = [
     },
     {   # the extended OM model (edge and ridge lines, one-sided shading) never switched on
         "name": "om-extended-never",
-        "file": "stages/indent_om.py",
+        "file": "stages/indent_om_array.py",
         "old": "    if gain <= 1.0:\n",
         "new": "    if gain <= 1e9:\n",
         "tests": ["tests/test_indents.py::test_om_array_with_lines_and_one_sided_shading"],

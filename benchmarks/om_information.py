@@ -25,6 +25,7 @@ import numpy as np
 
 from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
 from markcal.stages import indent_om as om
+from markcal.stages import indent_om_array as om_array
 from markcal.stages.indent_om_fit import _NS_PLAIN, _om_block_fit
 
 #: the render's crease (edge and ridge line) darkness (``MicrographOptions.lines``)
@@ -45,11 +46,11 @@ def _final_fit(img, pixel_um):
             kept["fit"] = (patches, out[1], d0, out[0])
         return out
 
-    om._om_block_fit = spy
+    om_array._om_block_fit = spy
     try:
-        om.measure_om_array(img, pixel_um, cands, sig, bg)
+        om_array.measure_om_array(img, pixel_um, cands, sig, bg)
     finally:
-        om._om_block_fit = _om_block_fit
+        om_array._om_block_fit = _om_block_fit
     return kept["fit"], sig
 
 

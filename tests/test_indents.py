@@ -368,12 +368,12 @@ def _hard_om_errors(seed, d_um, size_px):
 
     from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
     from markcal.stages import indent as ind
-    from markcal.stages import indent_om
+    from markcal.stages import indent_om_array
 
     r = render_micrograph(seed, MicrographOptions(rows=size_px, cols=size_px, grid=(3, 3, 8.0), d_um=d_um))
     img, px = r.data.astype(float), r.pixel_um
     chosen = []
-    orig = indent_om._choose_model
+    orig = indent_om_array._choose_model
 
     def spy(*a, **k):
         out = orig(*a, **k)
@@ -383,11 +383,11 @@ def _hard_om_errors(seed, d_um, size_px):
     with threadpool_limits(1):
         bg = ind.om_background(img, px)
         cands, sig = ind.detect_dots(img, px, background=bg)
-        indent_om._choose_model = spy
+        indent_om_array._choose_model = spy
         try:
             imps = [m for m in ind.measure_om_array(img, px, cands, sig, bg) if m is not None]
         finally:
-            indent_om._choose_model = orig
+            indent_om_array._choose_model = orig
     assert len(imps) == 9
     e = []
     for t in r.truth["imprints"]:

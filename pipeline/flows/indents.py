@@ -44,7 +44,7 @@ class IndentsOptions:
     objective_na: float | None = None       # OM arrays: the objective's NA; the PSF is held at its Airy, not fitted
     wavelength_um: float = 0.55             # OM: wavelength of the light for objective_na
     optics_from: str | None = None          # OM arrays: micrograph of larger imprints (same material, indenter,
-    #                                         objective) whose halo and crease are held on these (stages.indent_om)
+    #                                         objective) whose halo and crease are held on these (stages.indent_om_array)
 
 
 @dataclass(frozen=True)
@@ -125,7 +125,7 @@ def run_indents(paths, spec: ArraySpec | None = None, options: IndentsOptions | 
 
 
 def optics_reference(path, opt: IndentsOptions, say=lambda m: None) -> dict:
-    """The halo and crease of an OM array micrograph of larger imprints (:func:`markcal.stages.indent_om.om_halo_crease`),
+    """The halo and crease of an OM array micrograph of larger imprints (:func:`markcal.stages.indent_om_array.om_halo_crease`),
     to hold on imprints near the resolution limit imaged with the same objective.
 
     Raises
