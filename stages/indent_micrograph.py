@@ -395,7 +395,6 @@ def _corner_tips(img, corners, apex, d_px):
         tip = q[2:4]
         if np.hypot(*(tip - corners[k])) <= 0.05 * _mean_diagonal(corners):
             out[k] = tip
-    model.X, model.Y, model.z = X, Y, z
     return out
 
 

@@ -138,20 +138,25 @@ def optics_reference(path, opt: IndentsOptions, say=lambda m: None) -> dict:
     if img.kind != "om":
         raise MarkcalError("optics reference: an AFM height map; the halo and crease come from a light micrograph",
                            path)
-    single, _bar = measure_micrograph(img.data, img.pixel_um)      # the flow's own test for single imprints
-    if single:
-        raise MarkcalError(f"optics reference: a micrograph of {len(single)} single imprint(s) of "
-                           f"{np.median([m.d_um for m in single]):.1f} µm, not an array: the halo and crease come "
-                           "from an OM array of imprints", path)
-    say(f"{os.path.basename(str(path))}: measuring the optics reference (halo and crease)")
-    bg = ind.om_background(img.data, img.pixel_um)
-    cands, sig = ind.detect_dots(img.data, img.pixel_um, background=bg)
-    try:
-        from threadpoolctl import threadpool_limits
-        with threadpool_limits(1):
+    with _one_blas_thread():
+        single, _bar = measure_micrograph(img.data, img.pixel_um)      # the flow's own test for single imprints
+        if single:
+            raise MarkcalError(f"optics reference: a micrograph of {len(single)} single imprint(s) of "
+                               f"{np.median([m.d_um for m in single]):.1f} µm, not an array: the halo and crease "
+                               "come from an OM array of imprints", path)
+        say(f"{os.path.basename(str(path))}: measuring the optics reference (halo and crease)")
+        bg = ind.om_background(img.data, img.pixel_um)
+        cands, sig = ind.detect_dots(img.data, img.pixel_um, background=bg)
+        try:
             return ind.om_halo_crease(img.data, img.pixel_um, cands, sig, bg)
-    except ValueError as exc:
-        raise MarkcalError(f"optics reference: {exc}", path) from None
+        except ValueError as exc:
+            raise MarkcalError(f"optics reference: {exc}", path) from None
+
+
+def _one_blas_thread():
+    """Small matrices: one BLAS thread is fastest and never oversubscribes (a context manager)."""
+    from threadpoolctl import threadpool_limits
+    return threadpool_limits(1)
 
 
 def _held_summary(opt: IndentsOptions, held) -> dict:
@@ -168,8 +173,7 @@ def measure_file(path, spec: ArraySpec | None, opt: IndentsOptions, say=lambda m
     t0 = time.perf_counter()
     img = read_image(path, opt.pixel_size_um, opt.kind, channel=opt.channel)
     try:
-        from threadpoolctl import threadpool_limits
-        with threadpool_limits(1):          # small matrices: one BLAS thread is fastest and never oversubscribes
+        with _one_blas_thread():
             return _measure(img, spec, opt, say, t0, held)
     except MarkcalError as exc:
         raise exc.with_path(path) from None
