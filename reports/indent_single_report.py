@@ -74,7 +74,7 @@ def _micrograph_zoom(f, m):
     ny, nx = f.image.shape
     ext = (-0.5 * px, (nx - 0.5) * px, (ny - 0.5) * px, -0.5 * px)
     c = m.corners_um
-    closed = np.vstack([c, c[:1]])
+    closed = m.contour_um if m.contour_um is not None else np.vstack([c, c[:1]])
     lo, hi = np.nanpercentile(f.image, [0.5, 99.5])
     fig = new_figure(11.0, 5.6)
     gs = fig.add_gridspec(2, 4)
@@ -100,7 +100,7 @@ def _micrograph_zoom(f, m):
         axk.set_title(f"corner {k + 1} ({c[k, 0]:.2f}, {c[k, 1]:.2f}) µm", fontsize=8)
         axk.tick_params(labelsize=6)
     cap = (f"<code>{esc(os.path.basename(f.source))}</code>: the imprint enlarged with its corners (red +), "
-           "outline (cyan) and diagonals (yellow); right: each corner magnified (±"
+           "fitted outline with its edges' bows (cyan) and diagonals (yellow); right: each corner magnified (±"
            f"{win:.2f} µm) so a person can check that it sits where the facet edges end.")
     return img(png_b64(fig), f.source + " corners", cap)
 

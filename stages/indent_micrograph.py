@@ -415,6 +415,23 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
     return out
 
 
+def _bowed_outline(corners, bows, n_per_edge=16):
+    """Closed outline (px) of a quadrilateral whose edge k (corner k to k + 1) bows outwards by bows[k] at
+    mid-edge along a parabola."""
+    mid = corners.mean(axis=0)
+    t = np.arange(n_per_edge) / n_per_edge
+    pts = []
+    for k in range(4):
+        a, b = corners[k], corners[(k + 1) % 4]
+        v = b - a
+        nrm = np.array([v[1], -v[0]]) / max(np.hypot(*v), 1e-12)
+        if nrm @ (0.5 * (a + b) - mid) < 0:
+            nrm = -nrm
+        pts.append(a + t[:, None] * v + (bows[k] * 4.0 * t * (1.0 - t))[:, None] * nrm)
+    pts = np.vstack(pts)
+    return np.vstack([pts, pts[:1]])
+
+
 def _angles_deg(c):
     out = []
     for k in range(4):
@@ -504,6 +521,6 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
                            orientation_deg=float(orient), pileup_nm=nan, corners_um=c_um, fit_rms=rms / model.noise,
                            n_pixels=int(len(model.z)), contrast=contrast / max(abs(lv[4]), 1e-12), area_um2=area,
                            edge_bow=bow,
-                           cut_by_border=cut, contour_um=np.vstack([c_um, c_um[:1]]),
+                           cut_by_border=cut, contour_um=_bowed_outline(corners, bows) * pixel_um,
                            floor_um=(float(apex[0] * pixel_um), float(apex[1] * pixel_um))))
     return out, bar
