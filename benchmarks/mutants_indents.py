@@ -18,9 +18,9 @@ _SINGLE = "tests/test_indent_single.py"
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
         "name": "micrograph-inside-as-sum",
-        "file": "stages/indent_micrograph.py",
-        "old": "        w = w / (w.sum(axis=0) + 1e-12) * inside\n",
-        "new": "        inside = w.sum(axis=0)\n",
+        "file": "stages/indent_micrograph_kernel.py",
+        "old": "        out = min(max(1.0 - inside, 0.0), 1.0)\n",
+        "new": "        inside = min(wsum, 1.0)\n        out = min(max(1.0 - inside, 0.0), 1.0)\n",
         "tests": ["tests/test_indent_micrograph.py::test_small_om_imprint_not_short"],
     },
     {   # block centres of the coarse levels half a block off
@@ -32,9 +32,9 @@ MUTANTS_INDENTS = [
     },
     {   # the dark edge lines left out of the model
         "name": "micrograph-no-edge-lines",
-        "file": "stages/indent_micrograph.py",
-        "old": "extra = np.array([edge_line * out, edge_line * inside, glow, ridge, halo])",
-        "new": "extra = np.array([glow, ridge, halo])",
+        "file": "stages/indent_micrograph_kernel.py",
+        "old": "        a[i, 15] = edge_line * out\n        a[i, 16] = edge_line * inside\n",
+        "new": "        a[i, 15] = 0.0\n        a[i, 16] = 0.0\n",
         "tests": [_MICRO],
     },
     {   # the ridge-end correction moves the corner by delta * tan instead of delta / tan
@@ -43,6 +43,14 @@ MUTANTS_INDENTS = [
         "old": "t_c = t_half + delta_px / np.tan(alpha / 2)",
         "new": "t_c = t_half + delta_px * np.tan(alpha / 2) + 3.0",
         "tests": [_MICRO, "tests/test_indent_micrograph.py::test_two_imprints_in_one_micrograph"],
+    },
+    {   # the edges' bows left out of the micrograph model (straight edges: corners where the edges' average
+        # lines cross, bow and area of the bowed outline wrong)
+        "name": "micrograph-straight-edges",
+        "file": "stages/indent_micrograph_kernel.py",
+        "old": "                e[k] += bow[k] * 4.0 * t * (1.0 - t)\n",
+        "new": "                e[k] += 0.0 * t\n",
+        "tests": ["tests/test_micrograph_independent.py::test_bowed_edges_bow_and_area"],
     },
     {   # HV with the load in mN instead of N
         "name": "single-hv-load-units",
@@ -82,7 +90,7 @@ MUTANTS_INDENTS = [
     {   # the full-resolution level skipped on the coarse outline's size (a halo inflates it)
         "name": "micrograph-levels-on-coarse-size",
         "file": "stages/indent_micrograph.py",
-        "old": "if f == 1 and i > 0 and _mean_diagonal(p[2:].reshape(4, 2)) > 160:",
+        "old": "if f == 1 and i > 0 and _mean_diagonal(p[2:10].reshape(4, 2)) > 160:",
         "new": "if f == 1 and i > 0 and d_px > 160:",
         "tests": ["tests/test_indent_micrograph.py::test_halo_does_not_skip_full_resolution_level"],
     },
