@@ -90,8 +90,8 @@ MUTANTS_INDENTS = [
     {   # the full-resolution level skipped on the coarse outline's size (a halo inflates it)
         "name": "micrograph-levels-on-coarse-size",
         "file": "stages/indent_micrograph.py",
-        "old": "if f == 1 and i > 0 and _mean_diagonal(p[2:10].reshape(4, 2)) > 160:",
-        "new": "if f == 1 and i > 0 and d_px > 160:",
+        "old": "if i > 0 and _mean_diagonal(p[2:10].reshape(4, 2)) / f > FINEST_PX:",
+        "new": "if i > 0 and d_px / f > FINEST_PX:",
         "tests": ["tests/test_indent_micrograph.py::test_halo_does_not_skip_full_resolution_level"],
     },
     {   # pit candidates at the deepest point within the component's bounding box, not in the map

@@ -40,12 +40,17 @@ __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL
 MAX_FIT_RMS = 3.0
 MAX_FIT_RMS_REL = 0.1
 MIN_DIAGONAL_PX = 60.0
-#: a corner on a faint edge moves to the end of its ridge when they are farther apart than this (px)
+#: a corner on a faint edge moves to the end of its ridge when they are farther apart than this (px), and
+#: not farther than RIDGE_OVERRIDE_MAX of the mean diagonal (the real SEM image: 6 px, 2 %)
 RIDGE_OVERRIDE_PX = 3.0
+RIDGE_OVERRIDE_MAX = 0.04
 #: farthest the apex lies from the corners' mean (fraction of d): 0.012 for a depth of d/7 seen 5 degrees
 #: off normal; on imprints outlined partly by grain boundaries (BSE, strong grain) the fits that went
 #: wrong had 0.09 and 0.27, those that went right 0.014 at most
 MAX_APEX_OFF_CENTRE = 0.06
+#: the finest level of the whole-imprint fit has at most this many blocks across the imprint (mean diagonal);
+#: the corner refit at most twice as many
+FINEST_PX = 160
 #: largest edge bow fitted (fraction of d/2 at mid-edge; real imprints bow up to about 8 %): a bow free
 #: without bound took in a scratch beside an edge (32 px on a 240 px imprint)
 MAX_BOW = 0.12
@@ -278,10 +283,11 @@ def _refine(img, corners, apex, d_px, square=None):
     model = None
     bow_max = MAX_BOW * d_px / 2
     for i, f in enumerate(levels):
-        if f == 1 and i > 0 and _mean_diagonal(p[2:10].reshape(4, 2)) > 160:
-            # two pixels of a large imprint: the ridge ends place the corners. Judged on the fitted
-            # size, not the coarse outline's (a wide halo inflates that: the full-resolution level
-            # was skipped on a 119 px OM imprint, +3 px)
+        if i > 0 and _mean_diagonal(p[2:10].reshape(4, 2)) / f > FINEST_PX:
+            # blocks of a few pixels of a large imprint place its corners well within 1 % (the SEM goal is
+            # 2 %); the finer levels would cost seconds (a 628 px imprint: 5 s). Judged on the fitted size,
+            # not the coarse outline's (a wide halo inflates that: the full-resolution level was skipped on
+            # a 119 px OM imprint, +3 px)
             break
         band = None if i == 0 else max(6.0 * f, 0.06 * d_px)
         model = _QuadModel(img, f, p[2:10].reshape(4, 2), p[:2], band)
@@ -391,8 +397,11 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
     diagonals +3 and -1.2 to -3 %; see docs/indents.md for the bowed fit with and without this step.
     """
     out = corners.copy()
-    band = max(6.0, 0.06 * d_px)
-    model = _QuadModel(img, 1, corners, apex, band)
+    f = 1
+    while d_px / f > 2 * FINEST_PX:
+        f *= 2
+    band = max(6.0 * f, 0.06 * d_px)
+    model = _QuadModel(img, f, corners, apex, band)
     X, Y, z = model.X, model.Y, model.z
     for k in range(4):
         reach = CORNER_REACH * min(np.hypot(*(corners[k - 1] - corners[k])), np.hypot(*(corners[(k + 1) % 4] - corners[k])))
@@ -408,7 +417,7 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
             p[[2 + i for i in idx]] = q
             return model.residual(p)
 
-        q = _lm(fun, p0[[2 + i for i in idx]], 0.05, 8)
+        q = _lm(fun, p0[[2 + i for i in idx]], 0.05 * f, 8)
         tip = q[2:4]
         if np.hypot(*(tip - corners[k])) <= 0.05 * _mean_diagonal(corners):
             out[k] = tip
@@ -488,9 +497,11 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.5 * ridge_con[k]]
         if weak:
             # the ridge end overrides the fit only where they disagree by more than its own
-            # uncertainty (about 2 px on renders)
+            # uncertainty (about 2 px on renders), and by less than RIDGE_OVERRIDE_MAX of d (a 628 px SEM
+            # imprint whose ridges glow past its corners: two corners 45 px out)
             moved = _ridge_corners(work, corners, apex, _noise(work))
-            far = [k for k in weak if np.hypot(*(moved[k] - corners[k])) > RIDGE_OVERRIDE_PX]
+            shift = np.hypot(*(moved - corners).T)
+            far = [k for k in weak if RIDGE_OVERRIDE_PX < shift[k] <= RIDGE_OVERRIDE_MAX * _mean_diagonal(corners)]
             corners = corners.copy()
             corners[far] = moved[far]
         corners = _corner_tips(work, corners, apex, d0, bows)

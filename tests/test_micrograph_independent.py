@@ -62,3 +62,14 @@ def test_sem_imprints_seen_by_their_edge_glow():
     for t in truth["imprints"]:
         m = min(imps, key=lambda m: np.hypot(m.x_um - t["x_um"], m.y_um - t["y_um"]))
         assert abs(m.d_um / t["d_um"] - 1) <= 0.01
+
+
+def test_large_sem_imprint_corners_not_moved_to_glowing_ridge_ends():
+    """A 628 px SEM imprint: fitted on blocks of up to 4 px (the finest level has at most 160 blocks across), its
+    ridges glowing past two corners had moved them 45 px out (+7 %) through the ridge-end override; now within 0.5 %."""
+    img, px, truth = render_micrograph_independent(10, "sem")
+    imps, _bar = measure_micrograph(img, px)
+    assert len(imps) == 1
+    t = truth["imprints"][0]
+    assert t["d_um"] / px > 600
+    assert abs(imps[0].d_um / t["d_um"] - 1) <= 0.005
