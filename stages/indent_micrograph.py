@@ -328,7 +328,7 @@ def _refine(img, corners, apex, d_px, square=None):
                 if best is None or cost < best[0]:
                     best = (cost, q)
             p = best[1]
-    if len(p) == 10:                           # one level only
+    if len(p) == 10:                           # no level had pixels enough to fit
         p = np.concatenate([p, np.zeros(4)])
     return p[2:10].reshape(4, 2), p[:2], p[10:14], model
 
@@ -472,8 +472,8 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
     imprints : list of Imprint
         Corners (µm, in order around the imprint), diagonals corner to corner, centre (the
         corners' mean), diameter of the circle through the corners, projected area inside the
-        bowed edges, ``edge_bow`` (mean mid-edge bow / (d/2), outward positive); depth fields NaN. ``cut_by_border`` when a corner lies within a pixel
-        of the border or beyond.
+        bowed edges, ``edge_bow`` (mean mid-edge bow / (d/2), outward positive); depth fields NaN.
+        ``cut_by_border`` when a corner lies within a pixel of the border or beyond.
     bar_rows : int
         Rows of the information bar left out at the bottom (0: none).
     """
