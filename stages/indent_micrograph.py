@@ -478,6 +478,10 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         Rows of the information bar left out at the bottom (0: none).
     """
     img = np.asarray(img, np.float64)
+    bad = ~np.isfinite(img)
+    if bad.any():
+        # missing pixels (NaN in a float TIFF) read as the typical grey: no edge, no imprint there
+        img = np.where(bad, np.median(img[~bad]) if (~bad).any() else 0.0, img)
     bar = info_bar_rows(img)
     work = img[:img.shape[0] - bar] if bar else img
     ny, nx = work.shape

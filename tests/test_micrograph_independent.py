@@ -73,3 +73,14 @@ def test_large_sem_imprint_corners_not_moved_to_glowing_ridge_ends():
     t = truth["imprints"][0]
     assert t["d_um"] / px > 600
     assert abs(imps[0].d_um / t["d_um"] - 1) <= 0.005
+
+
+def test_missing_pixels_do_not_hide_the_imprint():
+    """NaN pixels (a float TIFF with a masked spot) away from the imprint: before, the background fit of the
+    detection turned NaN and nothing was found; now they read as the typical grey."""
+    img, px, truth = render_micrograph_independent(5, "om", 0.03)
+    img = img.astype(float)
+    img[10:30, 10:30] = np.nan
+    imps, _bar = measure_micrograph(img, px)
+    assert len(imps) == 1
+    assert abs(imps[0].d_um / truth["imprints"][0]["d_um"] - 1) <= 0.005
