@@ -165,3 +165,32 @@ def test_real_sem_vickers_imprint(tmp_path):
     assert row["cut_by_border"] == "0"
     assert abs(s["mean_d_um"] - 19.09) <= 0.02 * 19.09             # the manual reading above, 2 %
     assert elapsed < 15.0, f"SEM image took {elapsed:.1f} s CPU"
+
+
+def test_real_sem_corners_and_area_against_manual_reading():
+    """The real SEM image against the careful manual corner reading above (no reference is published).
+
+    Tolerances from the SEM goal of 2 % on the mean diagonal: the quadrilateral's area within 4 % of the manual
+    one (area goes as d^2); corners within 2 % of d (5.9 px) of the manual ones, except the bottom corner,
+    where the ridge-end override puts it 6.8 px from the manual reading (docs/indents.md); that one within 3 %.
+    The bowed outline's area exceeds the quadrilateral's when the edges bow outwards.
+    """
+    from markcal.stages.image_io import read_image
+    path = _realdata() / SEM_FILE
+    if not path.is_file():
+        pytest.skip(f"real file {SEM_FILE} not present (../shared/realdata)")
+    img = read_image(str(path))
+    imps, bar = measure_micrograph(img.data, img.pixel_um)
+    assert len(imps) == 1 and bar >= 80
+    m = imps[0]
+    manual = np.array([(915, 528), (752, 653), (622, 497), (783, 363)], float)
+    c = m.corners_um / img.pixel_um
+    dist = np.array([np.min(np.hypot(*(c - q).T)) for q in manual])
+    d_px = 19.09 / img.pixel_um
+    assert np.sum(dist <= 0.02 * d_px) >= 3 and np.all(dist <= 0.03 * d_px), dist
+
+    def quad(p):
+        return 0.5 * abs(np.dot(p[:, 0], np.roll(p[:, 1], -1)) - np.dot(p[:, 1], np.roll(p[:, 0], -1)))
+
+    assert abs(quad(m.corners_um) / quad(manual * img.pixel_um) - 1) <= 0.04
+    assert np.isfinite(m.edge_bow) and (m.area_um2 > quad(m.corners_um)) == (m.edge_bow > 0)
