@@ -222,17 +222,13 @@ class _QuadModel:
         a = self.design(p)
         return (a @ self._solve(a, self.z) - self.z) / self.noise
 
-    def glow(self, p):
-        """Fitted height of the glow along the edges (SEM edge effect; grey levels)."""
-        a = self.design(p)
-        return float(self._solve(a, self.z)[17])
-
     def region_levels(self, p):
-        """Mean brightness of each facet and of the surroundings (fitted), and the residual RMS."""
+        """Mean brightness of each facet and of the surroundings (fitted), the residual RMS and the
+        height of the glow along the edges (SEM edge effect), all in grey levels."""
         a = self.design(p)
         coef = self._solve(a, self.z)
         lv = coef[:15].reshape(5, 3)[:, 0]
-        return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2)))
+        return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2))), float(coef[17])
 
 
 def _seg_dist(X, Y, a, b):
@@ -493,7 +489,7 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         corners, apex, bows, model = _refine(work, corners0, apex0, d0, square0)
         if model is None:
             continue
-        lv, rms = model.region_levels(np.concatenate([apex, corners.ravel(), bows]))
+        lv, rms, glow = model.region_levels(np.concatenate([apex, corners.ravel(), bows]))
         # a corner whose fainter edge has less than half the contrast of the ridge between its
         # two facets is placed better by the end of that ridge
         edge_con = np.abs(lv[:4] - lv[4])
@@ -514,7 +510,7 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         contrast = float(np.max(np.abs(lv[:4] - lv[4])))
         # an SEM imprint may show mostly by the glow along its edges (facets within 2-3 noise levels
         # of the surroundings, glow 23 on an independent render)
-        signal = max(contrast, abs(model.glow(np.concatenate([apex, corners.ravel(), bows]))))
+        signal = max(contrast, abs(glow))
         off_centre = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
         if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and signal > 2 * model.noise
                 and rms < max(MAX_FIT_RMS * model.noise, MAX_FIT_RMS_REL * contrast)

@@ -250,7 +250,7 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
     return at if abs(at - length) <= 2.5 else None
 
 
-def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr=None):
+def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
 
     ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``); ``zr``: the
@@ -258,8 +258,8 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr=None):
 
     The ray is aimed along the valley between the two facets; the corner (where the valley meets the
     original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
-    Without ``zr``, or where that fit fails, a straight line through the interpolated profile of the last
-    few pixels before the coarse corner gives it.
+    Where that fit fails, a straight line through the interpolated profile of the last few pixels before
+    the coarse corner gives it.
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
@@ -280,7 +280,7 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr=None):
             v = (length - 5.0) * e + tj * nrm
             e = v / np.hypot(*v)
             nrm = np.array([-e[1], e[0]])
-    at = None if zr is None else _valley_crossing(zr, rc0, e, length, slope_floor, noise)
+    at = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
     if at is not None:
         return rc0 + at * e
     s = np.arange(length - 9.0, length + 3.0, 0.25)
@@ -347,10 +347,10 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     grow = max(3, int(0.15 * np.sqrt(pit.sum())))
     # pile-up beside the edges can cover half the far field of an imprint that fills the map: left out
     # with everything standing above the surface (the map is levelled), grown by 3 px
-    bump = ndimage.binary_dilation(zs > thr, iterations=3)
-    far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0) & ~bump
+    outside = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
+    far = outside & ~ndimage.binary_dilation(zs > thr, iterations=3)
     if far.sum() < 30:
-        far = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
+        far = outside
     if far.sum() < 30:
         far = fin & ~pit
     if far.sum() < 12:

@@ -33,6 +33,24 @@ class Lattice:
     pitch_mm: float
 
 
+def neighbour_pitch(xy: np.ndarray, pitch: float) -> tuple:
+    """The spacing of points on a square lattice, from their neighbours at about ``pitch`` (within 25 %).
+
+    A few stray points between the lattice's (dust, pits) have nearer neighbours and must not decide it;
+    when fewer near-pitch distances than points are found, the median nearest-neighbour distance is used.
+
+    Returns
+    -------
+    spacing : float
+        Same units as ``xy`` and ``pitch``.
+    dist, nb : ndarray (n, k)
+        Distances to and indices of each point's k = min(n, 5) nearest (itself first).
+    """
+    dist, nb = cKDTree(xy).query(xy, k=min(len(xy), 5))
+    step = dist[:, 1:][np.abs(dist[:, 1:] / pitch - 1) < 0.25]
+    return float(np.median(step) if len(step) >= len(xy) else np.median(dist[:, 1])), dist, nb
+
+
 def lattice_coords(uv_mm: np.ndarray, pitch_mm: float, pitch_tolerance: float = 0.04) -> Lattice:
     """Lattice directions, offset and integer coordinates of detected centres (plate frame, mm).
 
@@ -45,11 +63,7 @@ def lattice_coords(uv_mm: np.ndarray, pitch_mm: float, pitch_tolerance: float = 
     n = len(uv)
     if n < 4:
         raise MarkcalError(f"only {n} fiducials detected: cannot identify the grid")
-    dist, nb = cKDTree(uv).query(uv, k=min(n, 5))
-    # the pitch from the neighbours at about one pitch: a few stray detections between the
-    # marks (dust, pits) have nearer neighbours and must not decide it
-    step = dist[:, 1:][np.abs(dist[:, 1:] / pitch_mm - 1) < 0.25]
-    nn = np.median(step) if len(step) >= n else np.median(dist[:, 1])
+    nn, dist, nb = neighbour_pitch(uv, pitch_mm)
     if abs(nn / pitch_mm - 1) > pitch_tolerance:
         raise MarkcalError(f"fiducial pitch in the scan is {nn:.3f} mm but the plate spec says "
                            f"{pitch_mm:.3f} mm")
