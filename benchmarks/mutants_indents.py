@@ -108,6 +108,13 @@ MUTANTS_INDENTS = [
         "new": "        w = np.ones_like(r)\n",
         "tests": ["tests/test_indents.py", _MICRO],
     },
+    {   # the OM model's fine grid cut off inside the rim's tail (the far-cell shortcut too near the dot)
+        "name": "om-far-cut-inside-rim",
+        "file": "stages/indent_om_kernel.py",
+        "old": "    far = max(RIM_TAIL_T * rw,",
+        "new": "    far = max(1.0 * rw,",
+        "tests": ["tests/test_indents.py"],
+    },
     {   # the extended OM model (edge and ridge lines, one-sided shading) never switched on
         "name": "om-extended-never",
         "file": "stages/indent_om_array.py",

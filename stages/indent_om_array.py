@@ -12,8 +12,8 @@ import numpy as np
 
 from .indent_om import (_OM_S0, _PSF, RESOLUTION_RADII, _fix_psf, _om_imprint, _OmPatch, airy_radius_um,
                         measure_om)
-from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _om_block_fit, _om_joint_fit, _om_own_fit, _on_patches,
-                            soft_l1_cost)
+from .indent_om_fit import (_NS_PLAIN, _OM_SHARED, _om_block_fit, _om_joint_fit, _om_own_fit, _om_typical_fit,
+                            _on_patches, soft_l1_cost)
 
 __all__ = ["measure_om_array", "om_halo_crease"]
 
@@ -134,7 +134,7 @@ def _choose_model(patches, g0, d0, s_plain, noise_rel, fixed=(), crease=None):
     def ext_fit(line0, max_nfev):
         s0 = _extended(s_p)
         s0[_NS_PLAIN] = line0
-        s_e, g_e, res_e = _om_joint_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev, fixed=fixed)
+        s_e, g_e, res_e = _om_typical_fit(patches, g_p, d0, s0, noise_rel, max_nfev=max_nfev, fixed=fixed)
         return sum(float(np.sum(r * r)) for r in res_e), s_e, g_e
 
     # one Gauss-Newton step of the extended model from the plain solution (all parameters free):
@@ -262,7 +262,7 @@ def _om_array_pass(img, pixel_um, candidates, noise_rel, background, n_joint, re
         joint = [i for i in order if i not in excluded][:n_joint]
         # the extended model was just fitted on these dots (the plain one is only a start there): no refit
         if not (_round == 0 and extended_fitted):
-            s, g, _ = _om_joint_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
+            s, g, _ = _om_typical_fit([patches[i] for i in joint], np.array([starts[i][0] for i in joint]),
                                     [starts[i][1] for i in joint], s, noise_rel, fixed=fixed)
             for i, gi in zip(joint, g):
                 starts[i] = (gi, starts[i][1])

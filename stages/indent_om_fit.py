@@ -2,6 +2,8 @@
 
 - :func:`_om_joint_fit`: shared and own parameters of a few dots together (dense, scipy);
 - :func:`_om_block_fit`: the same for every dot of a micrograph (block-arrow normal equations);
+- :func:`_om_typical_fit`: the typical dots' fit: the first by :func:`_om_joint_fit`, the extended model's by
+  :func:`_om_block_fit`;
 - :func:`_om_own_fit`: one dot's own parameters, the shared ones fixed.
 
 The solvers only call the patch's ``model``, ``jac`` and ``own_bounds``.
@@ -96,6 +98,29 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
     return s, g, res
 
 
+#: damping increases the typical dots' block fit tries before it gives a step up (x4 four times, then x10).
+#: The default five (up to 256 x) stopped it 4 % above scipy's cost on a 1 µm independent render at
+#: 0.065 µm pixels (1.035 against 0.997); the block fits of every dot keep five (more cost 0.4-0.6 s there)
+TYPICAL_TRIES = 12
+
+
+def _om_typical_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
+    """Shared and own parameters of the typical dots: the plain model by scipy's trust region
+    (:func:`_om_joint_fit`), the extended one by the block Levenberg-Marquardt (:func:`_om_block_fit`).
+
+    The extended fit starts from a converged plain one. From there the block solver, which needs no SVD of
+    the dense Jacobian (about 7600 x 44 for five 1 µm dots at 0.1 µm), reaches scipy's cost to 0.05 % on
+    3 x 3 hard 1 µm renders 5000-5011 but one (5007: another minimum, 0.6 % higher), in a third of the
+    time. Near the resolution limit the minimum found depends on the path either way; the flow's
+    1 µm results moved both ways with this change (see docs/indents.md, "Speed (session 11)"). The plain fit
+    starts from the candidates' crude sizes and orientations, where the two paths part more: it stays on
+    scipy's.
+    """
+    if len(s0) > _NS_PLAIN:
+        return _om_block_fit(patches, g0, d0, s0, noise_rel, n_iter=max_nfev, fixed=fixed, tries=TYPICAL_TRIES)
+    return _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=max_nfev, fixed=fixed)
+
+
 def soft_l1_cost(res, noise_rel):
     """The solvers' robust cost of residual arrays: soft-L1 with the scale 3 noise levels (at least 0.005)."""
     f = max(3 * noise_rel, 0.005)
@@ -112,7 +137,7 @@ def _on_patches(fn, n):
     map_on_threads(lambda part: [fn(i) for i in part], [range(0, n, 2), range(1, n, 2)])   # here on one thread
 
 
-def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
+def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=(), tries=5):
     """Joint robust fit of many patches: shared and own parameters (Levenberg-Marquardt).
 
     The normal equations have a block-arrow structure (each patch couples its seven own
@@ -121,7 +146,8 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
     iteratively reweighted least squares; bounds by clipping.
 
     ``pin`` = (index, value) holds one shared parameter at a value (by clipping each step); those in
-    ``fixed`` keep theirs (left out of the solve).
+    ``fixed`` keep theirs (left out of the solve). ``tries``: damping increases tried on a step before
+    the fit stops (x4, after the fourth x10).
 
     Returns
     -------
@@ -167,7 +193,7 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
         gb = sum((t[5] for t in terms), np.zeros(nf))
         cost = soft_l1_cost(res, noise_rel)
         improved = False
-        for _try in range(5):
+        for _try in range(tries):
             uinv = [np.linalg.inv(u + lam * np.diag(np.diag(u)) + 1e-12 * np.eye(7)) for u in U]
             S = V + lam * np.diag(np.diag(V)) + 1e-12 * np.eye(nf)
             rhs = gb.copy()
@@ -189,7 +215,7 @@ def _om_block_fit(patches, g, d0, s, noise_rel, n_iter=20, pin=None, fixed=()):
             if c_new < cost:
                 improved = True
                 break
-            lam *= 4.0
+            lam *= 4.0 if _try < 4 else 10.0
         if not improved:
             break
         rel = (cost - c_new) / max(cost, 1e-30)

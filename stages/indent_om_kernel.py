@@ -13,6 +13,8 @@ import numpy as np
 from numba import njit
 
 SQRT2 = math.sqrt(2.0)
+#: the rim profile t^2 exp(2 (1 - t)) is 2e-11 at this t, its derivatives (times the rim width) below 1e-9
+RIM_TAIL_T = 16.0
 
 
 @njit(cache=True, nogil=True)
@@ -49,6 +51,8 @@ def om_dev(xf, yf, g, s, sub, crease_w, ext, n_grad, dev, grads):
     sh_u = s[6] if ext else 0.0
     sh_v = s[7] if ext else 0.0
     sh_uv = s[8] if ext else 0.0
+    # rho - 1 beyond which nothing is drawn: the rim at t > RIM_TAIL_T, the edge ramp, the edge line at 6 sigma
+    far = max(RIM_TAIL_T * rw, 0.5 / k_in, (6.0 * crease_w * SQRT2 / half) if ext else 0.0)
     ny, nx = xf.shape
     for i in range(ny):
         for j in range(nx):
@@ -56,6 +60,13 @@ def om_dev(xf, yf, g, s, sub, crease_w, ext, n_grad, dev, grads):
             u, v = ex * ct + ey * st, ey * ct - ex * st
             au, av = abs(u), abs(v)
             rho = (au + av) / half
+            if rho - 1 > far:
+                # beyond the rim's tail, the anti-aliased edge and the edge line: the model and every
+                # derivative are 0 (to 2e-8)
+                dev[i, j] = 0.0
+                for k in range(n_grad):
+                    grads[k, i, j] = 0.0
+                continue
             ramp = 0.5 - (rho - 1) * k_in
             inside = min(max(ramp, 0.0), 1.0)
             t = max(rho - 1, 0.0) / rw
