@@ -98,9 +98,10 @@ def _om_joint_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
     return s, g, res
 
 
-#: damping increases the typical dots' block fit tries before it gives a step up (x4 four times, then x10).
+#: damping increases the typical dots' block fit tries on a step before it stops (x4 four times, then x10).
 #: The default five (up to 256 x) stopped it 4 % above scipy's cost on a 1 µm independent render at
-#: 0.065 µm pixels (1.035 against 0.997); the block fits of every dot keep five (more cost 0.4-0.6 s there)
+#: 0.065 µm pixels (1.035 against 0.997). The block fits of every dot keep five: with twelve there too, the
+#: 1 µm speed seeds 5700-5711 took a median 1.80 s instead of 1.26 s
 TYPICAL_TRIES = 12
 
 
@@ -110,8 +111,8 @@ def _om_typical_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
 
     The extended fit starts from a converged plain one. From there the block solver, which needs no SVD of
     the dense Jacobian (about 7600 x 44 for five 1 µm dots at 0.1 µm), reaches scipy's cost to 0.05 % on
-    3 x 3 hard 1 µm renders 5000-5011 but one (5007: another minimum, 0.6 % higher), in a third of the
-    time. Near the resolution limit the minimum found depends on the path either way; the flow's
+    3 x 3 hard 1 µm renders 5000-5011 but one (5007: another minimum, 0.6 % higher), in a fifth to a half
+    of the time. Near the resolution limit the minimum found depends on the path either way; the flow's
     1 µm results moved both ways with this change (see docs/indents.md, "Speed (session 11)"). The plain fit
     starts from the candidates' crude sizes and orientations, where the two paths part more: it stays on
     scipy's.
