@@ -26,8 +26,11 @@ def cmd_indents(args) -> int:
     say("writing tables and report")
     paths = flow.write(res, args.out, report=not args.no_report)
     s = res.summary
+    judged = ("no array spec: nothing judged" if s['n_out_of_tolerance'] is None else
+              f"{s['n_out_of_tolerance']} out of tolerance"
+              + ("" if s['n_low_hd'] is None else f", {s['n_low_hd']} with H/D < {s['min_hd']}"))
     say(f"{s['n_imprints']} imprints in {s['n_files_ok']} file(s); mean diameter {s['mean_diameter_um']:.3f} µm; "
-        f"{s['n_out_of_tolerance']} out of tolerance, {s['n_low_hd']} with H/D < {s['min_hd']}")
+        f"{judged}")
     for src, msg in res.failed:
         print(f"markcal: error: {src}: {msg}", file=sys.stderr)
     print(os.path.abspath(paths.get("report.html", paths["summary.json"])))
