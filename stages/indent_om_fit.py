@@ -111,7 +111,7 @@ def _om_typical_fit(patches, g0, d0, s0, noise_rel, max_nfev=40, fixed=()):
 
     The extended fit starts from a converged plain one. From there the block solver, which needs no SVD of
     the dense Jacobian (about 7600 x 44 for five 1 µm dots at 0.1 µm), reaches scipy's cost to 0.05 % on
-    3 x 3 hard 1 µm renders 5000-5011 but one (5007: another minimum, 0.6 % higher), in a fifth to a half
+    3 x 3 hard 1 µm renders 5000-5011 but one (5007: another minimum, 0.4 % higher), in a fifth to a half
     of the time. Near the resolution limit the minimum found depends on the path either way; the flow's
     1 µm results moved both ways with this change (see docs/indents.md, "Speed (session 11)"). The plain fit
     starts from the candidates' crude sizes and orientations, where the two paths part more: it stays on
