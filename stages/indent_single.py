@@ -83,6 +83,9 @@ class SingleImprint:
 
 # ----------------------------------------------------------------------------- levelling
 
+FLOOR_MISFIT_NM = 2.0
+
+
 def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled:
     """Level a map whose imprint may fill most of the field, from the far field only.
 
@@ -111,6 +114,18 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
     keep = ring.copy()
     sigma, bow = 1.0, 0.0
     scars = np.zeros(z.shape, bool)
+    # a row's offset needs a tenth of the row as far field: a few pixels at the row's end, on the tail of
+    # a pile-up lobe below the mask's threshold, define their own zero and hide the lobe (13 nm on a
+    # 1 µm imprint filling 80 % of the field); rows with less are interpolated from their neighbours
+    min_row = max(3, nx // 10)
+    # the bow (``surf_total``) accumulates over the rounds, the line offsets and the scars are found afresh
+    # every round from the map with only the bow removed: offsets interpolated over rows without far field
+    # in an early round (its mask still holding pile-up tails) would otherwise stay in those rows for
+    # good, 6-8 nm under a 1 µm imprint filling 80 % of the field; and a row offset that a scar pulled
+    # off in one round makes the rest of the row look like a scar, whose patch would replace the floor
+    # of an imprint the row runs through with its neighbours' mean
+    z0 = z.copy()
+    surf_total = np.zeros_like(z)
     for it in range(n_iter):
         sigma = noise_nm(z, keep)
         if not np.isfinite(sigma) or sigma <= 0:
@@ -125,19 +140,31 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
         surf = poly_surface(z, keep, 2, step=1 if keep.sum() < 3000 else 2)
         if it == 0:
             bow = float(np.ptp(surf[keep])) if keep.any() else 0.0
-        z -= surf
-        # line offsets from the far field of each row
-        cnt = keep.sum(axis=1)
+        surf_total += surf
+        za = z0 - surf_total
+        # line offsets from the far field of each row, the scars found so far left out
+        use = keep & ~scars
+        cnt = use.sum(axis=1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)                # rows without far field
-            off = np.nanmedian(np.where(keep, z, np.nan), axis=1) if cnt.max() >= 3 else np.full(ny, np.nan)
-        off[cnt < 3] = np.nan
+            off = np.nanmedian(np.where(use, za, np.nan), axis=1) if cnt.max() >= min_row else np.full(ny, np.nan)
+        off[cnt < min_row] = np.nan
+        # a row whose far field splits into two levels, one of them its neighbours' (a scar over most of
+        # it), has no single offset: the median would follow the scar and shift the rest of the row, the
+        # imprint's floor included; such a row takes its neighbours' offset and the scar is patched below
+        tol = max(4.0 * sigma, 2.0)
+        padded = np.pad(off, 3, constant_values=np.nan)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)                # rows without neighbours
+            nb = np.nanmedian(np.stack([padded[3 + k:3 + k + ny] for k in (-3, -2, -1, 1, 2, 3)]), axis=0)
+        at_nb = ((np.abs(za - nb[:, None]) <= tol) & use).sum(axis=1)
+        split = (np.abs(off - nb) > tol) & (at_nb >= np.maximum(0.15 * cnt, 8))
+        off[split] = np.nan
         good = np.isfinite(off)
         if good.sum() >= 2:
             off = np.interp(np.arange(ny), np.flatnonzero(good), off[good])
-            z -= off[:, None]
-        z, fixed = _remove_scars(z, keep, sigma)
-        scars |= fixed
+            za = za - off[:, None]
+        z, scars = _remove_scars(za, keep, sigma)
     sigma = noise_nm(z, keep)
     z -= np.median(z[keep]) if keep.any() else 0.0
     z[~valid] = np.nan
@@ -151,8 +178,14 @@ def _bilinear(img, r, c, order=1, prefilter=True):
                                    prefilter=prefilter)
 
 
-def _floor(zr, zs, pit):
-    """Floor (row, col, height nm): 2-D quadratic fitted to the raw heights about the smoothed minimum."""
+def _floor(zr, zs, pit, noise=None):
+    """Floor (row, col, height nm): 2-D quadratic fitted to the raw heights about the smoothed minimum.
+
+    Where the quadratic does not describe the 3 x 3 pixels (rms residual above 2.5 noise levels, or
+    ``FLOOR_MISFIT_NM``): a bottom blunted to less than a pixel, sampled as a V, on which the fit's
+    minimum lies well above the lowest pixel (25 nm on a 1.5 µm imprint with 0.1 µm pixels); the lowest
+    raw pixel is taken instead.
+    """
     masked = np.where(pit, zs, np.inf)
     r0, c0 = np.unravel_index(int(np.argmin(masked)), zs.shape)
     ny, nx = zr.shape
@@ -165,6 +198,10 @@ def _floor(zr, zs, pit):
         return float(r0), float(c0), float(zs[r0, c0])
     a = np.column_stack([np.ones_like(dr), dc, dr, dc * dc, dc * dr, dr * dr])[ok]
     k = np.linalg.lstsq(a, v[ok], rcond=None)[0]
+    rms = float(np.sqrt(np.mean((a @ k - v[ok]) ** 2)))
+    if noise is not None and rms > max(2.5 * noise, FLOOR_MISFIT_NM):
+        j = int(np.nanargmin(np.where(ok, v, np.nan)))
+        return float(r0 + dr[j]), float(c0 + dc[j]), float(v[j])
     hess = np.array([[2 * k[3], k[4]], [k[4], 2 * k[5]]])
     if np.all(np.linalg.eigvalsh(hess) > 0):
         x = np.linalg.solve(hess, -k[1:3])
@@ -358,7 +395,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     pl = robust_plane(cc[far].astype(float), rr[far].astype(float), zz0[far], n_iter=6)
     zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
     zs = ndimage.gaussian_filter(zr, 1.0)
-    fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit)
+    fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit, noise)
     fr, fc = fr + r0, fc + c0                                          # window -> map rows, cols
     depth = -fz
     if not depth > thr:

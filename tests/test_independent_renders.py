@@ -3,8 +3,9 @@
 fixtures/indent_single_ruled (AFM, one imprint: ruled facets to bowed edges, pile-up lobes, ball-
 blunted indenter, sphere + cone tip, scanner artefacts) and fixtures/indent_om_aperture (OM, 5 x 5
 arrays: aperture-model shading, dark ridge and edge lines, halo, Airy NA 0.9, noise). Tolerances are
-the goals of benchmarks/bench_independent.py. AFM seeds 2 and 10 are left out: their pile-up lobes
-run off the field.
+the goals of benchmarks/bench_independent.py. AFM seed 2: pit and pile-up lobes fill rows 90-225 across
+the whole width (the level under the floor comes from two bands; depth was +1.26 % before session 12);
+seed 39: a scar runs along the floor's row over 60 % of its far field (depth was -2.64 %).
 """
 import itertools
 import math
@@ -27,7 +28,7 @@ def _corners_um(tab, k):
     return np.array([c + m1 / 2 * e1, c + m2 / 2 * e2, c - m1 / 2 * e1, c - m2 / 2 * e2])
 
 
-@pytest.mark.parametrize("seed,margin", [(5, None), (6, 3.0)])
+@pytest.mark.parametrize("seed,margin", [(5, None), (6, 3.0), (2, None), (39, 3.0)])
 def test_single_ruled_imprint_against_truth(tmp_path, seed, margin):
     r = render_single_ruled(seed, size_px=256, corner_margin_px=margin)
     t, px = r.truth, r.pixel_um
