@@ -57,7 +57,8 @@ def _render_single(args, say) -> int:
     from markcal.fixtures.indent_maps import tiff_bytes
     from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
     from markcal.reports.files import atomic_write_bytes, write_json
-    o = SingleOptions(size_px=args.size_px, fill=args.fill, corner_margin_px=args.corner_margin_px)
+    o = SingleOptions(size_px=args.size_px, fill=args.fill, corner_margin_px=args.corner_margin_px,
+                      cracks=args.cracks, crack_depth_nm=args.crack_depth_nm)
     say(f"rendering a single-imprint AFM map, seed {args.seed}")
     r = render_single(args.seed, o)
     os.makedirs(args.out, exist_ok=True)
@@ -162,6 +163,10 @@ def register(sub, render_sub) -> None:
             r.add_argument("--fill", type=float, default=None, help="--single: mean diagonal / field (0.4-0.9)")
             r.add_argument("--corner-margin-px", type=float, default=None,
                            help="--single: put the corner nearest a border this far from it (px)")
+            r.add_argument("--cracks", type=int, choices=range(0, 5), default=0, metavar="{0..4}",
+                           help="--single: corners with a radial crack (brittle materials such as glass)")
+            r.add_argument("--crack-depth-nm", type=_positive, default=100.0,
+                           help="--single: crack groove depth at the corner as the tip sees it (nm)")
         else:
             r.add_argument("--pixel-size-um", type=_positive, default=0.1, help="pixel size of the micrograph, µm")
             add_alias(r, "--pixel-um", "--pixel-size-um", type=_positive)

@@ -84,6 +84,7 @@ class SingleImprint:
 # ----------------------------------------------------------------------------- levelling
 
 FLOOR_MISFIT_NM = 2.0
+CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 
 
 def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled:
@@ -270,9 +271,27 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
     if use.sum() < 15:
         return None
     s, t, z = s[use], t[use], z[use]
+    k = _v_fit(s - length, t, z)
+    if k is None:
+        return None
+    # a crack running down the valley: a narrow groove under the V; its pixels left out, refitted
+    res = z - (k[0] + k[1] * (s - length) + k[2] * np.abs(t - k[4]) + k[3] * (t - k[4]))
+    deep = res < -max(4.0 * noise, 3.0, 3.0 * 1.4826 * np.median(np.abs(res)))
+    if deep.any() and (~deep).sum() >= 15:
+        k = _v_fit(s[~deep] - length, t[~deep], z[~deep])
+        if k is None:
+            return None
+    if not (k[1] > 0.2 * slope_floor and k[2] > 0):
+        return None
+    at = length - k[0] / k[1]
+    return at if abs(at - length) <= 2.5 else None
+
+
+def _v_fit(s, t, z):
+    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid: (a, b, c, f, t0)."""
     # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
     t0 = np.arange(-0.75, 0.76, 0.05)[:, None]
-    a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s - length, (len(t0), len(s))),
+    a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s, (len(t0), len(s))),
                   np.abs(t - t0), t - t0], axis=-1)
     ata = np.einsum("kni,knj->kij", a, a)
     atz = np.einsum("kni,n->ki", a, z)
@@ -280,11 +299,8 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
         k_all = np.linalg.solve(ata, atz[..., None])[..., 0]
     except np.linalg.LinAlgError:
         return None
-    k = k_all[int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))]
-    if not (k[1] > 0.2 * slope_floor and k[2] > 0):
-        return None
-    at = length - k[0] / k[1]
-    return at if abs(at - length) <= 2.5 else None
+    j = int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))
+    return np.append(k_all[j], t0[j, 0])
 
 
 def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
@@ -336,6 +352,26 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     if abs(s0 - length) > 2.5:
         return np.asarray(rc1, float)
     return rc0 + s0 * e
+
+
+def _fill_cracks(zr, noise, slope_px, radius_px=2.5):
+    """Fill narrow grooves (radial cracks, scratches): heights, filled mask.
+
+    A grey closing with a disc of ``radius_px`` lifts a groove to its banks. A groove is where it lifts
+    the map by more than max(5 noise levels, 3 nm) with the banks at the original level (within that
+    of 0), or anywhere by more than 2.5 facet slopes (``slope_px``, nm per pixel): the closing lifts the
+    valley between two facets by at most two of its slopes, so the imprint itself is left as it is.
+    """
+    r = int(np.ceil(radius_px))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disc = yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
+    closed = ndimage.grey_closing(zr, footprint=disc, mode="nearest")
+    tol = max(5.0 * noise, 3.0)
+    lift = closed - zr
+    groove = ((lift > tol) & (np.abs(closed) <= tol)) | (lift > max(tol, CRACK_LIFT_SLOPES * slope_px))
+    if not groove.any():
+        return zr, groove
+    return np.where(groove, closed, zr), groove
 
 
 def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: float, col: float,
@@ -403,8 +439,12 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # contact boundary: a light smoothing, level a few noise levels down, moved out to 0
     # (a level a few pixels inside: linear interpolation across the kink at the surface level
     # would put the boundary up to half a pixel out)
-    zb = ndimage.gaussian_filter(zr, 0.7)
     slope_px = depth / max(np.sqrt(pit.sum() / 2.0), 1.0)            # nm per pixel on the facets
+    # radial cracks from the corners (glass) would carry the boundary and the corners out along them
+    zr, groove = _fill_cracks(zr, noise, slope_px)
+    if groove.any():
+        zs = ndimage.gaussian_filter(zr, 1.0)
+    zb = ndimage.gaussian_filter(zr, 0.7)
     level = -max(3.0 * noise, 1.0, min(2.5 * slope_px, 0.15 * depth))
     zb = np.where(ndimage.binary_dilation(pit, iterations=4), zb, abs(level))   # only this pit's boundary
     cont, cut = _boundary(zb, level, np.array([fr, fc]) - [r0, c0])

@@ -52,6 +52,25 @@ def test_single_imprint_against_truth(tmp_path, seed, margin):
     assert np.isfinite(tab["apex_depth_nm"][0])
 
 
+@pytest.mark.parametrize("seed,crack_nm", [(2001, 30.0), (2003, 300.0)])
+def test_radial_cracks_do_not_lengthen_the_diagonals(tmp_path, seed, crack_nm):
+    """Cracks from all four corners (grooves 1-2 px wide, 30-300 nm deep as the tip sees them, running
+    0.4-1 half-diagonals out): the level contour followed them; before the crack fill of session 12 these
+    two had a corner 1.6 px out (30 nm) and d +2.9 % (300 nm). Tolerances: the single-imprint goals."""
+    r = render_single(seed, SingleOptions(corner_margin_px=3.0, cracks=4, crack_depth_nm=crack_nm))
+    t = r.truth["imprints"][0]
+    assert len(r.truth["cracks"]) == 4
+    px = r.pixel_um
+    res = run_indents([_ibw(tmp_path, r)], None, IndentsOptions())
+    tab = res.indents
+    assert len(tab["id"]) == 1
+    assert abs(tab["d_um"][0] - t["d_um"]) <= max(0.005 * t["d_um"], px)
+    assert abs(tab["area_um2"][0] / t["area_um2"] - 1) <= 0.01
+    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
+    tc = np.array(t["corners_um"])
+    assert max(np.min(np.hypot(*(tc - c).T)) for c in res.files[0].imprints[0].corners_um) / px <= 1.5
+
+
 def test_edge_bow_signs_against_truth():
     """Mid-edge bows (fraction of d/2) within 0.02 of truth, matched edge by edge by their midpoints."""
     from markcal.stages.indent_afm import detect_pits
