@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, \
+from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, square_pixel_um, \
     sniff_format
 from .errors import MarkcalError
 from .io import existing_file
@@ -314,6 +314,8 @@ def _read_gsf(path, channel=None):
         meta["pixel_problem"] = f"lateral size has no length unit (XYUnits '{h.get('XYUnits', '')}')"
     elif "XReal" in h:
         px = float(h["XReal"]) * xy / data.shape[1]
+        if "YReal" in h:
+            px = square_pixel_um(float(h["XReal"]) * xy, float(h["YReal"]) * xy, data.shape[1], data.shape[0])
     return data.astype(np.float64) * height_nm_per_unit(zu), px, "afm", meta
 
 
@@ -350,6 +352,9 @@ def _read_gwy(path, channel=None):
         meta["pixel_problem"] = f"lateral size {f.xreal:g} has no length unit"
     elif f.xreal:
         px = float(f.xreal) * length_um(xy) / data.shape[1]
+        if f.get("yreal"):
+            px = square_pixel_um(float(f.xreal) * length_um(xy), float(f["yreal"]) * length_um(xy),
+                                 data.shape[1], data.shape[0])
     return data * height_nm_per_unit(zu), px, "afm", meta
 
 
@@ -402,6 +407,10 @@ def _read_ibw(path, channel=None):
     px = None
     if sfa > 0 and length_um(xunit):
         px = sfa * length_um(xunit)
+        sfa_y = float(hdr["sfA"][1])
+        if sfa_y > 0:                     # a scan of fewer lines than points (or the other way) on the field
+            px = square_pixel_um(px * img.shape[1], sfa_y * length_um(xunit) * img.shape[0],
+                                 img.shape[1], img.shape[0])
     elif "ScanSize" in note:
         px = float(note["ScanSize"]) * 1e6 / img.shape[1]
     fin = img[np.isfinite(img)]

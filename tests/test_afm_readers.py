@@ -292,3 +292,29 @@ def test_igor2_and_afmreader_agree_on_asylum_ibw(tmp_path):
     assert zs.meta["channel"] == "ZSensorRetrace"
     with pytest.raises(MarkcalError, match="no channel 'Deflection'.*Height retrace, Amplitude retrace"):
         read_image(path, channel="Deflection")
+
+
+def test_non_square_pixels_refused_not_read_as_square(tmp_path, capsys):
+    """A scan of 64 points x 32 lines on a square field (y pixel twice the x pixel): read as square pixels,
+    every length along y would be half its size. IBW (x and y deltas, sfA) and GSF (XReal/YReal) are
+    refused with one line; the same files with square pixels read."""
+    from markcal.fixtures.indent_maps import ibw_bytes
+    from markcal.stages.image_io import gsf_bytes
+    z = np.zeros((32, 64))
+    z[10:20, 20:40] = -5e-8
+    cases = {"a.ibw": ibw_bytes({"HeightTrace": z}, (1e-7, 2e-7)),
+             "a.gsf": gsf_bytes(z, 64e-7, 64e-7)}
+    for name, blob in cases.items():
+        path = str(tmp_path / name)
+        with open(path, "wb") as fh:
+            fh.write(blob)
+        with pytest.raises(MarkcalError, match=r"pixels are not square \(100 x 200 nm\)"):
+            read_image(path)
+        out = str(tmp_path / ("out_" + name))
+        assert main(["indents", path, "--out", out, "--quiet"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("markcal: error: ") and name in err[0]
+        assert not os.path.exists(os.path.join(out, "summary.json"))
+    with open(tmp_path / "sq.ibw", "wb") as fh:
+        fh.write(ibw_bytes({"HeightTrace": z}, 1e-7))
+    assert read_image(str(tmp_path / "sq.ibw")).pixel_um == pytest.approx(0.1)
