@@ -21,7 +21,8 @@ from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
 from markcal.stages.indent_micrograph import measure_micrograph
-from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, level_single, measure_single
+from markcal.stages.indent_level import level_single
+from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
