@@ -148,6 +148,17 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         if kind not in ("afm", "om"):
             raise MarkcalError(f"kind must be afm or om, got {kind!r}", path)
         guess = kind
+    if guess == "afm":
+        # an interrupted scan: the lines never scanned hold one value each (0 in the file) and would stand
+        # as a plateau beside the map; a scanned line always has noise
+        top = np.max(np.where(fin, data, -np.inf), axis=1)
+        blank = (top == np.min(np.where(fin, data, np.inf), axis=1)) & (fin.sum(axis=1) >= 8)
+        if blank.all():
+            raise MarkcalError("every scan line is constant (no data)", path)
+        if blank.any():
+            data = data.copy()
+            data[blank] = np.nan
+            meta = dict(meta, blank_rows=int(blank.sum()))
     return Image(data=data, pixel_um=float(px), kind=guess, source=path, meta=meta)
 
 

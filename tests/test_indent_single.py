@@ -160,3 +160,23 @@ def test_spec_with_only_an_indenter_table(tmp_path):
     assert len(rows) == 2
     assert float(row["hv"]) == pytest.approx(0.1891 * 0.5 / d_mm ** 2, rel=1e-9)
     assert json.load(open(os.path.join(out, "summary.json")))["load_mN"] == 500.0
+
+
+def test_interrupted_scan_blank_lines_left_out(tmp_path):
+    """A scan stopped 12 lines below the imprint: the lines never scanned hold 0 in the file. Left in, they
+    stood as a plateau beside the map (session 11 found two imprints on this seed). They are now left out, with a
+    progress line; the imprint is measured within the goals."""
+    import dataclasses
+    r = render_single(2001, SingleOptions(fill=0.5))
+    t = r.truth["imprints"][0]
+    z = r.data.copy()
+    last = int(max(c[1] for c in t["corners_um"]) / r.pixel_um) + 12
+    z[last:] = 0.0
+    r = dataclasses.replace(r, data=z)
+    msgs = []
+    res = run_indents([_ibw(tmp_path, r)], None, IndentsOptions(), progress=msgs.append)
+    tab = res.indents
+    assert len(tab["id"]) == 1
+    assert abs(tab["d_um"][0] - t["d_um"]) <= max(0.005 * t["d_um"], r.pixel_um)
+    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
+    assert any(f"{z.shape[0] - last} constant scan lines" in m for m in msgs)

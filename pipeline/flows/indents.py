@@ -225,6 +225,8 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
     info = {"pixel_um": px, "shape": list(img.shape), "format": img.meta.get("format"),
             "channel": img.meta.get("channel", ""), "pixel_source": img.meta.get("pixel_source")}
     if img.kind == "afm":
+        if img.meta.get("blank_rows"):
+            say(f"{name}: {img.meta['blank_rows']} constant scan lines (not scanned) left out")
         say(f"{name}: levelling {img.shape[0]} x {img.shape[1]} AFM map")
         lv = level_afm(img.data, px)
         if lv.mask.mean() > 0.3:
