@@ -164,8 +164,8 @@ def test_spec_with_only_an_indenter_table(tmp_path):
 
 def test_interrupted_scan_blank_lines_left_out(tmp_path):
     """A scan stopped 12 lines below the imprint: the lines never scanned hold 0 in the file. Left in, they
-    stood as a plateau beside the map (session 11 found two imprints on this seed). They are now left out, with a
-    progress line; the imprint is measured within the goals."""
+    stood as a plateau beside the map (session 11 found two imprints on this seed). They are now left
+    out, with a progress line; the imprint is measured within the goals."""
     import dataclasses
     r = render_single(2001, SingleOptions(fill=0.5))
     t = r.truth["imprints"][0]
