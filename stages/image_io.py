@@ -10,8 +10,8 @@ waves, which have no magic bytes). Supported:
   ``.000``-``.00x``, legacy), Nanosurf ``.nid``, JPK ``.jpk``, WSxM ``.stp``/``.top``.
 - TIFF (tifffile): grey-scale 8/16-bit (OM) or float (AFM heights). Pixel size
   from OME-XML ``PhysicalSizeX``, ImageJ metadata (``unit`` + resolution), the
-  FEI/Thermo ``PixelWidth`` (tag 34682, m) or the resolution tags in cm; an
-  inch (dpi) resolution is a screen or editor setting and never taken as a
+  FEI/Thermo ``PixelWidth`` (tag 34682, m), the Zeiss SmartSEM ``Image Pixel Size``
+  (tag 34118) or the resolution tags in cm; an inch (dpi) resolution is a screen or editor setting and never taken as a
   pixel size, nor a cm value equal to 72/96/150/300 dpi. Float heights carry their unit in
   the ImageJ key ``zunit`` (nm, um, m); without it a map whose range is below
   1e-4 is taken to be in m, otherwise in nm.
@@ -198,6 +198,7 @@ def _read_tiff(path, channel=None):
         ij = tf.imagej_metadata or {}
         ome = tf.ome_metadata
         fei = tf.fei_metadata or {}
+        zeiss = tf.sem_metadata or {}
         tags = page.tags
         xres = tags.get("XResolution")
         runit = tags.get("ResolutionUnit")
@@ -208,7 +209,7 @@ def _read_tiff(path, channel=None):
     if arr.ndim != 2:
         raise MarkcalError(f"not a single-plane image (shape {arr.shape})")
     meta = {"format": "tiff", "dtype": str(arr.dtype)}
-    px, src = _tiff_pixel_um(ome, ij, fei, xres, runit)
+    px, src = _tiff_pixel_um(ome, ij, fei, xres, runit, zeiss)
     _single_channel("image", channel)
     meta["pixel_source"] = src
     if np.issubdtype(arr.dtype, np.floating):
@@ -232,8 +233,8 @@ def _read_tiff(path, channel=None):
     return arr.astype(np.float64), px, "om", meta
 
 
-def _tiff_pixel_um(ome, ij, fei, xres, runit):
-    """Pixel size (µm) and its source from OME-XML, ImageJ, FEI or cm resolution tags."""
+def _tiff_pixel_um(ome, ij, fei, xres, runit, zeiss=None):
+    """Pixel size (µm) and its source from OME-XML, ImageJ, FEI, Zeiss or cm resolution tags."""
     if ome:
         m = re.search(r'PhysicalSizeX="([0-9.eE+-]+)"', ome)
         if m:
@@ -252,6 +253,11 @@ def _tiff_pixel_um(ome, ij, fei, xres, runit):
     pw = (fei.get("Scan") or {}).get("PixelWidth") if isinstance(fei, dict) else None
     if pw:
         return float(pw) * 1e6, "fei"                           # FEI/Thermo PixelWidth: m
+    # Zeiss SmartSEM (tag 34118, CZ_SEM, parsed by tifffile): ('Image Pixel Size', 65.1, 'nm')
+    for key in ("ap_image_pixel_size", "ap_pixel_size"):
+        v = (zeiss or {}).get(key)
+        if isinstance(v, tuple) and len(v) == 3 and isinstance(v[1], (int, float)) and v[1] > 0 and length_um(v[2]):
+            return float(v[1]) * length_um(v[2]), "zeiss"
     # resolution tags: only centimetres, and not an editor's dpi default written in cm
     if unit_code == 3 and per_unit > 0 and not any(abs(per_unit * 2.54 - d) < 0.01 * d for d in _SCREEN_DPI):
         return 1e4 / per_unit, "resolution tags"

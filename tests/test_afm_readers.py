@@ -318,3 +318,23 @@ def test_non_square_pixels_refused_not_read_as_square(tmp_path, capsys):
     with open(tmp_path / "sq.ibw", "wb") as fh:
         fh.write(ibw_bytes({"HeightTrace": z}, 1e-7))
     assert read_image(str(tmp_path / "sq.ibw")).pixel_um == pytest.approx(0.1)
+
+
+def test_zeiss_smartsem_pixel_size_tag(tmp_path):
+    """Zeiss SmartSEM writes its header as text in TIFF tag 34118 (CZ_SEM), parsed by tifffile; the pixel
+    size is ``Image Pixel Size`` (newer) or ``Pixel Size`` (older), with its unit. Written here byte by
+    byte as SmartSEM lays it out (unnamed numbers, then KEY / name = value unit pairs), beside a 96 dpi
+    resolution tag that must not be taken."""
+    import tifffile
+    img = (np.arange(64 * 80) % 251).reshape(64, 80).astype(np.uint16)
+    for pairs, want in [
+        ([("AP_PIXEL_SIZE", "Pixel Size = 65.10 nm"), ("AP_IMAGE_PIXEL_SIZE", "Image Pixel Size = 65.10 nm")], 0.0651),
+        ([("AP_PIXEL_SIZE", "Pixel Size = 1.250 µm")], 1.25),
+        ([("AP_WD", "WD = 8.5 mm"), ("AP_PIXEL_SIZE", "Pixel Size = 812.5 pm")], 0.0008125),
+    ]:
+        text = "\r\n".join(["0", "0"] + [x for kv in pairs for x in kv] + ["END", ""]).encode("latin-1")
+        path = str(tmp_path / f"z{want}.tif")
+        tifffile.imwrite(path, img, resolution=(96, 96), resolutionunit="INCH",
+                         extratags=[(34118, "B", len(text), text, True)])
+        im = read_image(path)
+        assert im.meta["pixel_source"] == "zeiss" and im.pixel_um == pytest.approx(want, rel=1e-9)
