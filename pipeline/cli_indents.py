@@ -53,10 +53,11 @@ def cmd_render_afm(args) -> int:
 
 
 def _render_single(args, say) -> int:
-    """One real-like imprint: heights.ibw (Height, Deflection, ZSensor in m), heights.tif, truth.json."""
+    """One real-like imprint: heights.ibw (Height, Deflection, ZSensor in m), heights.tif / .gsf, truth.json."""
     from markcal.fixtures.indent_maps import tiff_bytes
     from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
     from markcal.reports.files import atomic_write_bytes, write_json
+    from markcal.stages.image_io import gsf_bytes
     o = SingleOptions(size_px=args.size_px, fill=args.fill, corner_margin_px=args.corner_margin_px,
                       cracks=args.cracks, crack_depth_nm=args.crack_depth_nm)
     say(f"rendering a single-imprint AFM map, seed {args.seed}")
@@ -66,6 +67,11 @@ def _render_single(args, say) -> int:
     atomic_write_bytes(os.path.join(args.out, "heights.ibw"), single_ibw(r))
     if "tif" in fmts:
         atomic_write_bytes(os.path.join(args.out, "heights.tif"), tiff_bytes(r.data, r.pixel_um, zunit="nm"))
+    if "gsf" in fmts:
+        ext_m = r.pixel_um * 1e-6 * r.data.shape[1]
+        atomic_write_bytes(os.path.join(args.out, "heights.gsf"),
+                           gsf_bytes(r.data.astype("float64") * 1e-9, ext_m, ext_m * r.data.shape[0] / r.data.shape[1],
+                                     "m", "Height"))
     write_json(os.path.join(args.out, "truth.json"), r.truth)
     print(os.path.abspath(args.out))
     return 0

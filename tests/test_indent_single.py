@@ -132,6 +132,11 @@ def test_cli_render_single_and_measure(tmp_path, capsys):
     assert s["mean_hv"] == pytest.approx(0.1891 * 0.3 / (s["mean_d_um"] * 1e-3) ** 2, rel=1e-9)
     html = open(os.path.join(res_dir, "report.html")).read()
     assert "HV" in html
+    # the same heights as GSF (the default formats tif,gsf beside the IBW) read to the same diagonal
+    gsf_dir = str(tmp_path / "g")
+    assert main(["indents", os.path.join(out, "heights.gsf"), "--out", gsf_dir, "--quiet"]) == 0
+    assert json.load(open(os.path.join(gsf_dir, "summary.json")))["mean_d_um"] == pytest.approx(s["mean_d_um"],
+                                                                                               rel=1e-6)
 
 
 def test_flat_map_is_refused(tmp_path, capsys):
