@@ -85,6 +85,18 @@ def test_strong_scanner_bow_levelled_from_the_ring(tmp_path):
     assert abs(tab["area_um2"][0] / t["area_um2"] - 1) <= 0.01
 
 
+def test_line_offsets_make_no_second_imprint(tmp_path):
+    """White line offsets of 5 nm (our renderer's default is 2): seed 2005 had a second "imprint" of
+    0.69 µm and 11 nm (H/D 0.016) beside the real one. Without an array spec, pits under H/D 0.02 are
+    not imprints; the real one is measured within the goals."""
+    r = render_single(2005, SingleOptions(corner_margin_px=3.0, line_offset_nm=5.0))
+    t = r.truth["imprints"][0]
+    tab = run_indents([_ibw(tmp_path, r)], None, IndentsOptions()).indents
+    assert len(tab["id"]) == 1
+    assert abs(tab["d_um"][0] - t["d_um"]) <= max(0.005 * t["d_um"], r.pixel_um)
+    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
+
+
 def test_edge_bow_signs_against_truth():
     """Mid-edge bows (fraction of d/2) within 0.02 of truth, matched edge by edge by their midpoints."""
     from markcal.stages.indent_afm import detect_pits
