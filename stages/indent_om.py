@@ -112,6 +112,9 @@ def _airy_kernel(psf_um, sub_um, h=None):
 
 
 _KERNEL_CACHE: dict = {}
+# the blur's FFTs in single precision: 3.5 x faster per transform than double; the model is a reflectance
+# near 1 fitted to grey values with 1 % noise, where float32's 1e-7 is far below anything that counts
+_FFT_REAL, _FFT_COMPLEX = np.float32, np.complex64
 
 
 def _box_fft(k, ss, shape):
@@ -176,10 +179,12 @@ class _OmPatch:
         if got is None:
             if len(_KERNEL_CACHE) > 64:
                 _KERNEL_CACHE.clear()
-            got = _KERNEL_CACHE[key] = [_box_fft(_airy(psf, self.sub), self.ss, shape), h, shape, None]
+            kf = _box_fft(_airy(psf, self.sub), self.ss, shape)
+            got = _KERNEL_CACHE[key] = [kf.astype(_FFT_COMPLEX), h, shape, None, kf]
         if psf_step is not None and got[3] is None:
-            got[3] = (_box_fft(_airy(psf + psf_step, self.sub, h), self.ss, shape) - got[0]) / psf_step
-        return got
+            got[3] = ((_box_fft(_airy(psf + psf_step, self.sub, h), self.ss, shape) - got[4]) / psf_step
+                      ).astype(_FFT_COMPLEX)
+        return got[:4]
 
     def dev(self, g, s):
         """Reflectance - 1 on the fine grid."""
@@ -205,7 +210,7 @@ class _OmPatch:
         blur by the PSF width.
         """
         kf, h, shape, dk = self._kernel_fft(float(psf), psf_step)
-        spec = sfft.rfft2(dev, shape)
+        spec = sfft.rfft2(dev.astype(_FFT_REAL, copy=False), shape)
         if psf_step is None:
             spec *= kf
         else:
