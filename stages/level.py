@@ -145,22 +145,28 @@ def _remove_scars(z, keep, sigma, k=4.0, min_len=8, max_width=2):
         free = np.ones((ny - w - 1, nx), bool)
         for j in range(w):
             mid = z[1 + j:ny - w + j]
-            hi &= (mid - above > thr) & (mid - below > thr)
-            lo &= (above - mid > thr) & (below - mid > thr)
+            da, db = mid - above, mid - below
+            hi &= (da > thr) & (db > thr)
+            lo &= (da < -thr) & (db < -thr)
             free &= keep[1 + j:ny - w + j]
         free &= keep[:ny - w - 1] & keep[w + 1:]
-        masked = ~free
         for cand in (hi, lo):
+            # a streak lies along one row: only rows with min_len free candidates can hold one
+            rows = np.flatnonzero(np.count_nonzero(cand & free, axis=1) >= min_len)
+            if rows.size == 0:
+                continue
+            c_r, f_r = cand[rows], free[rows]
             # bridge short gaps inside masked features along the row
-            bridged = _close1d(cand, 7, axis=1) & (cand | masked)
+            bridged = _close1d(c_r, 7, axis=1) & (c_r | ~f_r)
             lab, n = ndimage.label(bridged, structure=row_struct)
             if n == 0:
                 continue
-            n_free = np.bincount(lab.ravel(), weights=(cand & free).ravel(), minlength=n + 1)
+            n_free = np.bincount(lab.ravel(), weights=(c_r & f_r).ravel(), minlength=n + 1)
             good = n_free >= min_len
             good[0] = False
             sel = good[lab]
             rr, cc = np.nonzero(sel)
+            rr = rows[rr]
             for j in range(w):
                 t = (j + 1) / (w + 1)
                 r = rr + 1 + j
