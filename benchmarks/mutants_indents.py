@@ -122,4 +122,25 @@ MUTANTS_INDENTS = [
         "new": "    if gain <= 1e9:\n",
         "tests": ["tests/test_indents.py::test_om_array_with_lines_and_one_sided_shading"],
     },
+    {   # radial cracks left in: the level contour runs out along them (session 12)
+        "name": "single-cracks-not-filled",
+        "file": "stages/indent_single.py",
+        "old": "    zr, groove = _fill_cracks(zr, noise, slope_px)\n",
+        "new": "    groove = np.zeros(zr.shape, bool)\n",
+        "tests": [_SINGLE + "::test_radial_cracks_do_not_lengthen_the_diagonals"],
+    },
+    {   # row offsets from rows with 3 far-field pixels (lobe tails set their zero; session 12)
+        "name": "level-row-offsets-from-3-pixels",
+        "file": "stages/indent_level.py",
+        "old": "    min_row = max(3, nx // 10)\n",
+        "new": "    min_row = 3\n",
+        "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_against_truth"],
+    },
+    {   # the ring's bow never fitted first (a 300 nm scanner bow; session 12)
+        "name": "level-ring-bow-never",
+        "file": "stages/indent_level.py",
+        "old": "    if spread_plane > RING_BOW_MIN_NM:\n",
+        "new": "    if False:\n",
+        "tests": [_SINGLE + "::test_strong_scanner_bow_levelled_from_the_ring"],
+    },
 ]
