@@ -125,7 +125,7 @@ MUTANTS_INDENTS = [
     {   # radial cracks left in: the level contour runs out along them (session 12)
         "name": "single-cracks-not-filled",
         "file": "stages/indent_single.py",
-        "old": "    zr, groove = _fill_cracks(zr, noise, slope_px)\n",
+        "old": "    zr, groove = _fill_cracks(zr, noise, slope_px, depth)\n",
         "new": "    groove = np.zeros(zr.shape, bool)\n",
         "tests": [_SINGLE + "::test_radial_cracks_do_not_lengthen_the_diagonals"],
     },

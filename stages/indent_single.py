@@ -265,13 +265,16 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     return rc0 + s0 * e
 
 
-def _fill_cracks(zr, noise, slope_px, radius_px=2.5):
+def _fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
     """Fill narrow grooves (radial cracks, scratches): heights, filled mask.
 
     A grey closing with a disc of ``radius_px`` lifts a groove to its banks. A groove is where it lifts
-    the map by more than max(5 noise levels, 3 nm) with the banks at the original level (within that
-    of 0), or anywhere by more than 2.5 facet slopes (``slope_px``, nm per pixel): the closing lifts the
-    valley between two facets by at most two of its slopes, so the imprint itself is left as it is.
+    the map by more than max(5 noise levels, 3 nm, a facet slope) with the banks at the original level
+    (within max(5 noise levels, 3 nm) of 0; the valleys' last pixels at the corners are lifted by less
+    than a slope), or, in the upper half of the imprint (the closed surface above half the depth ``depth_nm``), by
+    more than 2.5 facet slopes (``slope_px``, nm per pixel): the closing lifts the valley between two facets
+    by at most two of its slopes, so the imprint itself is left as it is (and its floor, which a closing
+    rounds, is no crack).
     """
     r = int(np.ceil(radius_px))
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
@@ -279,7 +282,8 @@ def _fill_cracks(zr, noise, slope_px, radius_px=2.5):
     closed = ndimage.grey_closing(zr, footprint=disc, mode="nearest")
     tol = max(5.0 * noise, 3.0)
     lift = closed - zr
-    groove = ((lift > tol) & (np.abs(closed) <= tol)) | (lift > max(tol, CRACK_LIFT_SLOPES * slope_px))
+    groove = ((lift > max(tol, slope_px)) & (np.abs(closed) <= tol)) \
+        | ((lift > max(tol, CRACK_LIFT_SLOPES * slope_px)) & (closed > -0.5 * depth_nm))
     if not groove.any():
         return zr, groove
     return np.where(groove, closed, zr), groove
@@ -352,7 +356,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # would put the boundary up to half a pixel out)
     slope_px = depth / max(np.sqrt(pit.sum() / 2.0), 1.0)            # nm per pixel on the facets
     # radial cracks from the corners (glass) would carry the boundary and the corners out along them
-    zr, groove = _fill_cracks(zr, noise, slope_px)
+    zr, groove = _fill_cracks(zr, noise, slope_px, depth)
     if groove.any():
         zs = ndimage.gaussian_filter(zr, 1.0)
     zb = ndimage.gaussian_filter(zr, 0.7)
