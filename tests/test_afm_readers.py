@@ -338,3 +338,25 @@ def test_zeiss_smartsem_pixel_size_tag(tmp_path):
                          extratags=[(34118, "B", len(text), text, True)])
         im = read_image(path)
         assert im.meta["pixel_source"] == "zeiss" and im.pixel_um == pytest.approx(want, rel=1e-9)
+
+
+_REAL_AFM = ["bruker_legacy/old_bruker.002", "bruker_legacy/old_bruker.004", "bruker_nanoscope/full_multiple_images.txt",
+             "jpk_wsxm/sample_0.jpk", "jpk_wsxm/sample_0.stp", "jpk_wsxm/sample_0.top", "nanosurf_nid/circles.nid",
+             "nanosurf_nid/grid1.nid", "nanosurf_nid/sapphire.nid"]
+
+
+@pytest.mark.parametrize("rel", _REAL_AFM)
+def test_real_maps_keep_every_line_and_hold_no_imprint(rel, tmp_path, capsys):
+    """The real AFM maps (none shows an indentation imprint, realdata README): every scan line is kept (a
+    real line has noise; only exactly constant lines, an interrupted scan's, are left out), and the indents
+    flow finds no imprint: one line, exit 1, no summary.json. Session 11 reported 5 "imprints" on
+    circles.nid (depth / diameter under 0.003), 1 on grid1.nid (0.014) and 1 on the NanoScope file (0.023);
+    with the measuring of session 12 and no 0.02 floor on H/D, circles.nid gives 14 (H/D <= 0.0022)."""
+    path = _real(f"afm/{rel}")
+    im = read_image(path)
+    assert "blank_rows" not in im.meta and np.isfinite(im.data).all()
+    out = str(tmp_path / "out")
+    assert main(["indents", path, "--out", out, "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("markcal: error: ") and err[0].endswith("no imprint found")
+    assert not os.path.exists(os.path.join(out, "summary.json"))
