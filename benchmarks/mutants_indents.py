@@ -139,8 +139,8 @@ MUTANTS_INDENTS = [
     {   # the ring's bow never fitted first (a 300 nm scanner bow; session 12)
         "name": "level-ring-bow-never",
         "file": "stages/indent_level.py",
-        "old": "    if spread_plane > RING_BOW_MIN_NM:\n",
-        "new": "    if False:\n",
+        "old": "    if not spread_plane > RING_BOW_MIN_NM:\n",
+        "new": "    if True:\n",
         "tests": [_SINGLE + "::test_strong_scanner_bow_levelled_from_the_ring"],
     },
 ]

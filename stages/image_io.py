@@ -11,8 +11,8 @@ waves, which have no magic bytes). Supported:
 - TIFF (tifffile): grey-scale 8/16-bit (OM) or float (AFM heights). Pixel size
   from OME-XML ``PhysicalSizeX``, ImageJ metadata (``unit`` + resolution), the
   FEI/Thermo ``PixelWidth`` (tag 34682, m), the Zeiss SmartSEM ``Image Pixel Size``
-  (tag 34118) or the resolution tags in cm; an inch (dpi) resolution is a screen or editor setting and never taken as a
-  pixel size, nor a cm value equal to 72/96/150/300 dpi. Float heights carry their unit in
+  (tag 34118) or the resolution tags in cm; an inch (dpi) resolution is a screen or
+  editor setting and never taken as a pixel size, nor a cm value equal to 72/96/150/300 dpi. Float heights carry their unit in
   the ImageJ key ``zunit`` (nm, um, m); without it a map whose range is below
   1e-4 is taken to be in m, otherwise in nm.
 - Gwyddion Simple Field ``.gsf`` (hand-written reader; the format is a text
@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, square_pixel_um, \
-    sniff_format
+from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, \
+    sniff_format, square_pixel_um
 from .errors import MarkcalError
 from .io import existing_file
 

@@ -22,11 +22,12 @@ RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above whi
 def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled:
     """Level a map whose imprint may fill most of the field, from the far field only.
 
-    The first plane comes from the border ring (robust: the corners of the imprint and
-    pile-up are rejected); then, iterated, the features (more than 5 noise levels off
-    after smoothing, grown by 3 px) are masked, a plane + quadratic bow is fitted to the
-    rest and each row's offset is the median of its far-field pixels (interpolated over
-    rows that have fewer than 3).
+    The first plane comes from the border ring (robust: the corners of the imprint and pile-up are
+    rejected), and the ring's bow where it is clearly bowed (:func:`_ring_bow`); then, iterated, the
+    features (more than 5 noise levels off after smoothing, grown by 3 px) are masked, a plane +
+    quadratic bow is fitted to the rest, each row's offset is the median of its far-field pixels (rows
+    with under a tenth of their width as far field, or split by a scar, interpolated from their
+    neighbours) and scars are patched.
 
     Parameters
     ----------
@@ -44,28 +45,8 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
     plane = coef[0] * cc + coef[1] * rr + coef[2]
     tilt_deg = float(np.degrees(np.arctan(np.hypot(coef[0], coef[1]) / (1000.0 * pixel_um))))
     z -= plane
-    # a strong scanner bow (a few hundred nm) from the ring too, as a robust quadratic: left in, it stands
-    # above the first round's 20 nm feature threshold over most of the field, and the bow fitted to what
-    # is left (parts of the ring) extrapolates 30 nm wrong under the imprint. Taken only where the ring is
-    # clearly bowed (its robust spread about the plane over 10 nm, halved by the quadratic): where the
-    # imprint and its pile-up cover much of the ring, a quadratic through it would follow them
-    ring_bow = np.zeros_like(z)
-    med0 = np.median(z[ring])
-    spread_plane = 1.4826 * np.median(np.abs(z[ring] - med0))
-    if spread_plane > RING_BOW_MIN_NM:
-        use, fit, spread = ring.copy(), np.zeros_like(z), spread_plane
-        for _ in range(4):
-            fit = poly_surface(z, use, 2, step=1)
-            res = z - fit
-            med = np.median(res[use])
-            spread = 1.4826 * np.median(np.abs(res[use] - med))
-            nxt = ring & (np.abs(res - med) <= max(4.0 * spread, 3.0))
-            if nxt.sum() < 0.5 * ring.sum() or np.array_equal(nxt, use):
-                break
-            use = nxt
-        if spread < 0.5 * spread_plane:
-            ring_bow = fit
-            z -= ring_bow
+    ring_bow = _ring_bow(z, ring)
+    z -= ring_bow
     keep = ring.copy()
     sigma, bow = 1.0, 0.0
     scars = np.zeros(z.shape, bool)
@@ -125,3 +106,27 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
     z[~valid] = np.nan
     return Levelled(z_nm=z, mask=~keep, noise_nm=float(sigma), tilt_deg=tilt_deg, bow_nm=bow, scars=scars)
 
+
+def _ring_bow(z, ring):
+    """The scanner's bow (nm, everywhere) as a robust quadratic through the border ring ``ring``, or zeros.
+
+    A strong bow (a few hundred nm), left in, stands above the first round's 20 nm feature threshold over
+    most of the field, and the bow fitted to what is left (parts of the ring) extrapolates 30 nm wrong
+    under the imprint. Taken only where the ring is clearly bowed (its robust spread about the plane over
+    ``RING_BOW_MIN_NM``, halved by the quadratic): where the imprint and its pile-up cover much of the
+    ring, a quadratic through it would follow them.
+    """
+    spread_plane = 1.4826 * np.median(np.abs(z[ring] - np.median(z[ring])))
+    if not spread_plane > RING_BOW_MIN_NM:
+        return np.zeros_like(z)
+    use, fit, spread = ring.copy(), np.zeros_like(z), spread_plane
+    for _ in range(4):
+        fit = poly_surface(z, use, 2, step=1)
+        res = z - fit
+        med = np.median(res[use])
+        spread = 1.4826 * np.median(np.abs(res[use] - med))
+        nxt = ring & (np.abs(res - med) <= max(4.0 * spread, 3.0))
+        if nxt.sum() < 0.5 * ring.sum() or np.array_equal(nxt, use):
+            break
+        use = nxt
+    return fit if spread < 0.5 * spread_plane else np.zeros_like(z)
