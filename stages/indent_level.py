@@ -66,10 +66,12 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
         sigma = noise_nm(z, keep)
         if not np.isfinite(sigma) or sigma <= 0:
             sigma = 1.0
-        zs = ndimage.gaussian_filter(z, 1.0)
-        # first round: line offsets are still in, so only clear features are masked
-        feat = np.abs(zs - np.median(zs[keep])) > (max(5 * sigma, 20.0) if it == 0 else 5 * sigma)
-        feat = ndimage.binary_dilation(feat, structure=np.ones((7, 7), bool))
+        if it == 0:
+            feat = _first_features(z, keep, valid, sigma)
+        else:
+            zs = ndimage.gaussian_filter(z, 1.0)
+            feat = ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > 5 * sigma,
+                                           structure=np.ones((7, 7), bool))
         keep = valid & ~feat
         if keep.sum() < 0.02 * valid.sum():
             keep = valid & ring
@@ -105,6 +107,38 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
     z -= np.median(z[keep]) if keep.any() else 0.0
     z[~valid] = np.nan
     return Levelled(z_nm=z, mask=~keep, noise_nm=float(sigma), tilt_deg=tilt_deg, bow_nm=bow, scars=scars)
+
+
+def _first_features(z, keep, valid, sigma):
+    """The first round's feature mask: clear features only (line offsets are still in), grown by 3 px.
+
+    The rows' drift (tens of nm over a scan) can stand above the threshold over most of the field; the
+    map with each row's side-strip median removed is then masked instead, when that leaves more of the
+    field unmasked (where pile-up lobes reach the sides, removing the strips' level marks more).
+    """
+    thr = max(5 * sigma, 20.0)
+    grow = np.ones((7, 7), bool)
+    masks = []
+    for zz in (z, z - _side_strip_offsets(z, valid)[:, None]):
+        zs = ndimage.gaussian_filter(zz, 1.0)
+        masks.append(ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > thr, structure=grow))
+    return min(masks, key=lambda m: int(m.sum()))
+
+
+def _side_strip_offsets(z, valid):
+    """Each row's median over its two side strips (a tenth of the width each; nm), 0 where a row has none there.
+
+    A first guess of the line offsets that needs no mask: the imprint rarely covers most of both ends
+    of a row, and rows where it does are corrected by the far-field offsets of the later rounds.
+    """
+    w = max(3, z.shape[1] // 10)
+    strips = np.concatenate([z[:, :w], z[:, -w:]], axis=1)
+    ok = np.concatenate([valid[:, :w], valid[:, -w:]], axis=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)                    # rows without valid strips
+        off = np.nanmedian(np.where(ok, strips, np.nan), axis=1)
+    off = np.where(np.isfinite(off), off, 0.0)
+    return off - np.median(off)
 
 
 def _ring_bow(z, ring):
