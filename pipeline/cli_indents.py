@@ -126,7 +126,8 @@ def _positive(v):
 def register(sub, render_sub) -> None:
     """Add ``indents`` to the top-level commands and ``afm``, ``om`` to ``render``."""
     p = sub.add_parser("indents", help="AFM maps / OM images of indentation arrays -> sizes, depths, positions, report")
-    p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM, SEM or AFM), AFM maps .gsf, .gwy, .ibw, Bruker "
+    p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM, SEM or AFM), .png/.jpg/.bmp micrographs "
+                                               "(with --pixel-size-um), AFM maps .gsf, .gwy, .ibw, Bruker "
                                                "NanoScope (.spm, .000-.999; by content), Nanosurf .nid, JPK .jpk, "
                                                "WSxM .stp/.top")
     p.add_argument("--array", help="array spec (ARRAY.toml): [array] rows, cols, pitch_um, nominal_diameter_um; "

@@ -42,6 +42,7 @@ from .io import existing_file
 __all__ = ["Image", "read_image", "parse_gsf", "gsf_bytes"]
 
 _TIFF_MAGIC = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_PICTURE_MAGIC = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff", b"BM")          # PNG, JPEG, BMP
 #: resolutions (per inch) that image editors and screens write by default
 _SCREEN_DPI = (72.0, 96.0, 150.0, 300.0)
 
@@ -108,18 +109,21 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         name = fmt
         reader = lambda p: (*_spm(p, fmt, channel),)             # noqa: E731
     else:
-        by_ext = {".tif": _read_tiff, ".tiff": _read_tiff, ".gsf": _read_gsf, ".gwy": _read_gwy, ".ibw": _read_ibw}
+        by_ext = {".tif": _read_tiff, ".tiff": _read_tiff, ".gsf": _read_gsf, ".gwy": _read_gwy, ".ibw": _read_ibw,
+                  ".png": _read_picture, ".jpg": _read_picture, ".jpeg": _read_picture, ".bmp": _read_picture}
         if head[:4] in _TIFF_MAGIC:
             name, read = "tiff", _read_tiff
         elif head.startswith(b"GWYP"):
             name, read = "gwy", _read_gwy
         elif head.startswith(_GSF_MAGIC[:21]):
             name, read = "gsf", _read_gsf
+        elif head.startswith(_PICTURE_MAGIC):
+            name, read = "picture", _read_picture
         elif ext in by_ext:                       # no magic (Igor) or a damaged file: its reader says what is wrong
             name, read = ext[1:], by_ext[ext]
         else:
-            raise MarkcalError("not a known image format (TIFF, GSF, GWY, IBW, Bruker NanoScope, Nanosurf NID, "
-                               "JPK, WSxM)", path)
+            raise MarkcalError("not a known image format (TIFF, PNG, JPEG, BMP, GSF, GWY, IBW, Bruker NanoScope, "
+                               "Nanosurf NID, JPK, WSxM)", path)
         reader = lambda p: read(p, channel)                      # noqa: E731
     try:
         data, px, guess, meta = reader(path)
@@ -141,7 +145,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         if not (pixel_size_um > 0 and np.isfinite(pixel_size_um)):
             raise MarkcalError(f"--pixel-size-um must be positive, got {pixel_size_um}", path)
         px = float(pixel_size_um)
-        meta = dict(meta, pixel_source="override")
+        meta = dict({k: v for k, v in meta.items() if k != "pixel_problem"}, pixel_source="override")
     if px is None or not np.isfinite(px) or px <= 0:
         raise MarkcalError(f"{meta.get('pixel_problem', 'image has no pixel size')}: give --pixel-size-um", path)
     if kind is not None:
@@ -231,6 +235,27 @@ def _read_tiff(path, channel=None):
         raise MarkcalError("binary (1-bit) image: not a micrograph")
     meta["bits"] = int(arr.dtype.itemsize * 8)
     return arr.astype(np.float64), px, "om", meta
+
+
+def _read_picture(path, channel=None):
+    """A PNG, JPEG or BMP micrograph (Pillow): grey values, RGB as luminance; no pixel size.
+
+    These formats carry only a print or screen resolution (PNG pHYs, JPEG JFIF density, BMP pels per
+    metre; 72 or 96 dpi when nobody set it), never a microscope's pixel: ``--pixel-size-um`` gives it.
+    """
+    from .plate_image import read_pixels
+    arr, dpi, _camera = read_pixels(path, "")
+    arr = np.squeeze(arr)
+    bits = int(arr.dtype.itemsize * 8)
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4):           # RGB(A) micrograph: luminance
+        arr = arr[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    if arr.ndim != 2:
+        raise MarkcalError(f"not a single-plane image (shape {arr.shape})")
+    _single_channel("image", channel)
+    res = f" (its {dpi[0]:.0f} dpi is a print or screen setting)" if dpi else ""
+    meta = {"format": "picture", "bits": bits, "pixel_source": None,
+            "pixel_problem": f"a PNG, JPEG or BMP file holds no microscope pixel size{res}"}
+    return arr.astype(np.float64), None, "om", meta
 
 
 def _tiff_pixel_um(ome, ij, fei, xres, runit, zeiss=None):

@@ -54,7 +54,7 @@ def _focal_text(focal, make, model) -> str | None:
     return f"focal length {f:g} mm" + (f", {who}" if who else "")
 
 
-def _read_pixels(path: str, ext: str) -> tuple:
+def read_pixels(path: str, ext: str) -> tuple:
     """Pixels as an array, the resolution as (dpi_x, dpi_y) or None, and the camera the EXIF names or None."""
     if ext in (".tif", ".tiff"):
         import tifffile
@@ -130,7 +130,7 @@ def read_plate_image(path, pixel_size_mm: float | None = None, refuse_camera: bo
         Unreadable file, a camera's image, unknown pixel size, unsupported layout.
     """
     path, ext = existing_file(path)
-    arr, dpi, camera = _read_pixels(path, ext)
+    arr, dpi, camera = read_pixels(path, ext)
     if camera and refuse_camera:
         raise MarkcalError(f"the image was taken through a camera lens (EXIF: {camera}): markcal cannot tell a "
                            "camera's perspective and lens distortion from the galvo's on one image of the marked "

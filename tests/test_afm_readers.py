@@ -162,6 +162,34 @@ def test_tiff_dpi_tags_never_a_pixel_size(tmp_path):
     assert read_image(p).pixel_um == pytest.approx(0.125)
 
 
+@pytest.mark.parametrize("ext", ["png", "jpg", "bmp"])
+def test_picture_micrographs_read_as_grey_with_no_pixel_size(tmp_path, ext):
+    """PNG, JPEG and BMP micrographs (Pillow): RGB to luminance, 8 bits; their dpi is never a pixel size."""
+    from PIL import Image
+    grey = np.tile(np.arange(0, 256, 4, dtype=np.uint8), (48, 1))           # 48 x 64 ramp
+    rgb = np.stack([grey, grey, grey], axis=-1)
+    p = str(tmp_path / f"om.{ext}")
+    Image.fromarray(rgb).save(p, **({"dpi": (96, 96)} if ext != "jpg" else {"quality": 95}))
+    with pytest.raises(MarkcalError, match="holds no microscope pixel size.*give --pixel-size-um"):
+        read_image(p)
+    im = read_image(p, pixel_size_um=0.2)
+    assert im.kind == "om" and im.shape == (48, 64) and im.pixel_um == 0.2 and im.meta["bits"] == 8
+    tol = 2.0 if ext == "jpg" else 1e-9                                      # JPEG is lossy
+    assert np.max(np.abs(im.data - grey)) <= tol
+
+
+def test_truncated_png_is_one_line_error(tmp_path, capsys):
+    from PIL import Image
+    p = tmp_path / "cut.png"
+    Image.fromarray((np.random.default_rng(1).random((64, 64)) * 255).astype(np.uint8)).save(p)
+    p.write_bytes(p.read_bytes()[:200])
+    out = tmp_path / "out"
+    assert main(["indents", str(p), "--pixel-size-um", "0.1", "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"markcal: error: {p}:"), err
+    assert not (out / "summary.json").exists()
+
+
 # ----------------------------------------------------------------------------- synthetic Bruker and NID
 
 def _bruker_bytes(images, scan_nm, sens_nm_per_v, version="0x09300201"):

@@ -378,7 +378,8 @@ def _resolution(files) -> dict:
 
 
 #: extensions of the height maps and micrographs the flow reads (others are recognised by content)
-MAP_EXTENSIONS = (".tif", ".tiff", ".gsf", ".gwy", ".ibw", ".spm", ".nid", ".jpk", ".stp", ".top")
+MAP_EXTENSIONS = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".bmp", ".gsf", ".gwy", ".ibw", ".spm", ".nid", ".jpk",
+                  ".stp", ".top")
 
 
 def _claims(path) -> bool:
