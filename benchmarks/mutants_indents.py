@@ -150,4 +150,11 @@ MUTANTS_INDENTS = [
         "new": "    return masks[0]\n",
         "tests": [_SINGLE + "::test_drifting_scan_lines_within_goals"],
     },
+    {   # no square search when the outline finds nothing (BSE grain; session 13)
+        "name": "micrograph-no-square-search",
+        "file": "stages/indent_micrograph.py",
+        "old": "    if not out:\n",
+        "new": "    if False:\n",
+        "tests": ["tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
+    },
 ]

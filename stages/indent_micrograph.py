@@ -29,6 +29,7 @@ from scipy import ndimage
 from .errors import MarkcalError
 from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 from .indent_micrograph_kernel import quad_design
+from .indent_square_search import square_candidates
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
 
@@ -480,58 +481,75 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         img = np.where(bad, np.median(img[~bad]) if (~bad).any() else 0.0, img)
     bar = info_bar_rows(img)
     work = img[:img.shape[0] - bar] if bar else img
-    ny, nx = work.shape
-    out = []
-    for corners0, apex0, square0 in _coarse(work, min_diagonal_px):
-        d0 = 0.5 * (np.hypot(*(corners0[0] - corners0[2])) + np.hypot(*(corners0[1] - corners0[3])))
-        if d0 < min_diagonal_px:
-            continue
-        corners, apex, bows, model = _refine(work, corners0, apex0, d0, square0)
-        if model is None:
-            continue
-        lv, rms, glow = model.region_levels(np.concatenate([apex, corners.ravel(), bows]))
-        # a corner whose fainter edge has less than half the contrast of the ridge between its
-        # two facets is placed better by the end of that ridge
-        edge_con = np.abs(lv[:4] - lv[4])
-        ridge_con = np.abs(lv[[3, 0, 1, 2]] - lv[:4])                   # corner k: facets k-1 and k
-        weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.5 * ridge_con[k]]
-        if weak:
-            # the ridge end overrides the fit only where they disagree by more than its own
-            # uncertainty (about 2 px on renders), and by less than RIDGE_OVERRIDE_MAX of d (a 628 px SEM
-            # imprint whose ridges glow past its corners: two corners 45 px out)
-            moved = _ridge_corners(work, corners, apex, _noise(work))
-            shift = np.hypot(*(moved - corners).T)
-            far = [k for k in weak if RIDGE_OVERRIDE_PX < shift[k] <= RIDGE_OVERRIDE_MAX * _mean_diagonal(corners)]
-            corners = corners.copy()
-            corners[far] = moved[far]
-        corners = _corner_tips(work, corners, apex, d0, bows)
-        d1 = np.hypot(*(corners[0] - corners[2]))
-        d2 = np.hypot(*(corners[1] - corners[3]))
-        contrast = float(np.max(np.abs(lv[:4] - lv[4])))
-        # an SEM imprint may show mostly by the glow along its edges (facets within 2-3 noise levels
-        # of the surroundings, glow 23 on an independent render)
-        signal = max(contrast, abs(glow))
-        off_centre = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
-        if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and signal > 2 * model.noise
-                and rms < max(MAX_FIT_RMS * model.noise, MAX_FIT_RMS_REL * contrast)
-                and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE):
-            continue
-        c_um = corners * pixel_um
-        dd1, dd2, orient = diagonals(c_um)
-        cx, cy, crad = circle_fit(c_um)
-        cut = bool(np.any((corners < 1.0) | (corners > np.array([nx, ny]) - 2.0)))
-        x, y = c_um[:, 0], c_um[:, 1]
-        edges_um = np.hypot(*(np.roll(c_um, -1, axis=0) - c_um).T)
-        # the quadrilateral and the parabolic segments of the bowed edges (2/3 base x height each)
-        area = (0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
-                + float(np.sum(2.0 / 3.0 * edges_um * bows * pixel_um)))
-        bow = float(np.mean(bows) / (0.25 * (d1 + d2)))
-        nan = float("nan")
-        out.append(Imprint(x_um=float(x.mean()), y_um=float(y.mean()), diameter_um=float(2 * crad),
-                           diag1_um=float(dd1), diag2_um=float(dd2), depth_nm=nan, hd_ratio=nan,
-                           orientation_deg=float(orient), pileup_nm=nan, corners_um=c_um, fit_rms=rms / model.noise,
-                           n_pixels=int(len(model.z)), contrast=contrast / max(abs(lv[4]), 1e-12), area_um2=area,
-                           edge_bow=bow,
-                           cut_by_border=cut, contour_um=_bowed_outline(corners, bows) * pixel_um,
-                           floor_um=(float(apex[0] * pixel_um), float(apex[1] * pixel_um))))
+    out = _measure_all(work, pixel_um, min_diagonal_px, _coarse(work, min_diagonal_px))
+    if not out:
+        # strong grain contrast (BSE) cuts the outline into pieces that start no fit near the imprint:
+        # squares with four clear edges start the same fit and face the same checks
+        out = _measure_all(work, pixel_um, min_diagonal_px, square_candidates(work, min_diagonal_px))
     return out, bar
+
+
+def _measure_all(work, pixel_um, min_diagonal_px, candidates) -> list:
+    """The imprints the fit confirms from ``candidates`` (corners, apex, square), one per place."""
+    out = []
+    for cand in candidates:
+        m = _measure_one(work, pixel_um, min_diagonal_px, *cand)
+        if m is not None and all(np.hypot(m.x_um - o.x_um, m.y_um - o.y_um) > 0.25 * o.d_um for o in out):
+            out.append(m)
+    return out
+
+
+def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
+    """One imprint fitted from a candidate, or None when it is too small or fails a check."""
+    ny, nx = work.shape
+    d0 = 0.5 * (np.hypot(*(corners0[0] - corners0[2])) + np.hypot(*(corners0[1] - corners0[3])))
+    if d0 < min_diagonal_px:
+        return None
+    corners, apex, bows, model = _refine(work, corners0, apex0, d0, square0)
+    if model is None:
+        return None
+    lv, rms, glow = model.region_levels(np.concatenate([apex, corners.ravel(), bows]))
+    # a corner whose fainter edge has less than half the contrast of the ridge between its
+    # two facets is placed better by the end of that ridge
+    edge_con = np.abs(lv[:4] - lv[4])
+    ridge_con = np.abs(lv[[3, 0, 1, 2]] - lv[:4])                   # corner k: facets k-1 and k
+    weak = [k for k in range(4) if min(edge_con[k - 1], edge_con[k]) < 0.5 * ridge_con[k]]
+    if weak:
+        # the ridge end overrides the fit only where they disagree by more than its own
+        # uncertainty (about 2 px on renders), and by less than RIDGE_OVERRIDE_MAX of d (a 628 px SEM
+        # imprint whose ridges glow past its corners: two corners 45 px out)
+        moved = _ridge_corners(work, corners, apex, _noise(work))
+        shift = np.hypot(*(moved - corners).T)
+        far = [k for k in weak if RIDGE_OVERRIDE_PX < shift[k] <= RIDGE_OVERRIDE_MAX * _mean_diagonal(corners)]
+        corners = corners.copy()
+        corners[far] = moved[far]
+    corners = _corner_tips(work, corners, apex, d0, bows)
+    d1 = np.hypot(*(corners[0] - corners[2]))
+    d2 = np.hypot(*(corners[1] - corners[3]))
+    contrast = float(np.max(np.abs(lv[:4] - lv[4])))
+    # an SEM imprint may show mostly by the glow along its edges (facets within 2-3 noise levels
+    # of the surroundings, glow 23 on an independent render)
+    signal = max(contrast, abs(glow))
+    off_centre = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
+    if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and signal > 2 * model.noise
+            and rms < max(MAX_FIT_RMS * model.noise, MAX_FIT_RMS_REL * contrast)
+            and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE):
+        return None
+    c_um = corners * pixel_um
+    dd1, dd2, orient = diagonals(c_um)
+    cx, cy, crad = circle_fit(c_um)
+    cut = bool(np.any((corners < 1.0) | (corners > np.array([nx, ny]) - 2.0)))
+    x, y = c_um[:, 0], c_um[:, 1]
+    edges_um = np.hypot(*(np.roll(c_um, -1, axis=0) - c_um).T)
+    # the quadrilateral and the parabolic segments of the bowed edges (2/3 base x height each)
+    area = (0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+            + float(np.sum(2.0 / 3.0 * edges_um * bows * pixel_um)))
+    bow = float(np.mean(bows) / (0.25 * (d1 + d2)))
+    nan = float("nan")
+    return Imprint(x_um=float(x.mean()), y_um=float(y.mean()), diameter_um=float(2 * crad),
+                   diag1_um=float(dd1), diag2_um=float(dd2), depth_nm=nan, hd_ratio=nan,
+                   orientation_deg=float(orient), pileup_nm=nan, corners_um=c_um, fit_rms=rms / model.noise,
+                   n_pixels=int(len(model.z)), contrast=contrast / max(abs(lv[4]), 1e-12), area_um2=area,
+                   edge_bow=bow,
+                   cut_by_border=cut, contour_um=_bowed_outline(corners, bows) * pixel_um,
+                   floor_um=(float(apex[0] * pixel_um), float(apex[1] * pixel_um)))
