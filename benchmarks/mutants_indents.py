@@ -157,4 +157,32 @@ MUTANTS_INDENTS = [
         "new": "    if False:\n",
         "tests": ["tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
     },
+    {   # a collapsed mask falls back to the border ring in every round (session 13)
+        "name": "level-collapse-to-ring",
+        "file": "stages/indent_level.py",
+        "old": "            keep = valid & ring if it == 0 else prev\n",
+        "new": "            keep = valid & ring\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_noise_free_and_far_field_in_corners"],
+    },
+    {   # a quadratic whatever the far field's spread (session 13)
+        "name": "level-always-quadratic",
+        "file": "stages/indent_level.py",
+        "old": "    if cells.sum() >= 10:\n",
+        "new": "    if True:\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers"],
+    },
+    {   # the diagonals' direction from the boundary's far points again (session 13)
+        "name": "single-diagonals-from-outline",
+        "file": "stages/indent_single.py",
+        "old": "    theta = _diagonal_angle(zs, pit, depth, nc)\n",
+        "new": "    theta = None\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner"],
+    },
+    {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
+        "name": "select-pits-not-pyramids",
+        "file": "stages/indent_select.py",
+        "old": "                                          or m.floor_share > MAX_FLOOR_SHARE or _no_pyramid(m, pixel_um))]\n",
+        "new": "                                          )]\n",
+        "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
+    },
 ]

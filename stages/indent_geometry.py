@@ -77,6 +77,7 @@ class Imprint:
     cut_by_border: bool = False
     contour_um: np.ndarray | None = None    # contact boundary (m, 2)
     floor_um: tuple | None = None           # (x, y) of the floor
+    floor_share: float = float("nan")       # share of the pit deeper than 80 % of its depth (AFM)
 
     @property
     def d_um(self) -> float:

@@ -56,7 +56,7 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
     extra = dict(area_um2=single.area_um2, pileup_volume_um3=single.pileup_volume_um3,
                  edge_bow=float(np.nanmean(single.edge_bow)) if np.isfinite(single.edge_bow).any() else nan,
                  cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
-                 apex_depth_nm=facet.depth_nm if facet is not None else nan)
+                 apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share)
     if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
         if np.isfinite(single.depth_nm) and rounding_px(facet, pixel_um) >= 1.0:
             # the rounded floor is resolved by the pixels: depth to the measured floor (the lowest
@@ -81,6 +81,7 @@ def dedupe(imps: list) -> list:
 
 
 MIN_IMPRINT_HD = 0.02       # depth / diameter under which a pit is not an imprint (Vickers: 0.14 sharp)
+MAX_FLOOR_SHARE = 0.085     # share of a pit deeper than 80 % of its depth above which it is flat-bottomed
 
 
 def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,
@@ -91,17 +92,27 @@ def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = No
     Without a size window (no array spec), an AFM pit shallower than ``MIN_IMPRINT_HD`` of its diameter
     is not an imprint: a Vickers imprint's H/D is 0.14, 0.07-0.1 after the elastic recovery of glass. Line
     offsets of a few nm had made 0.7 µm "imprints" 11 nm deep (H/D 0.016) beside a real one. With a spec,
-    shallow imprints of the array stay, to be counted by the H/D check.
+    shallow imprints of the array stay, to be counted by the H/D check. Nor, without a size window, is a
+    flat-bottomed pit (``floor_share`` over ``MAX_FLOOR_SHARE``): a pyramid's deepest fifth holds 3-7 % of
+    it on every renderer (blunted, rounded, recovered), the square pits of a calibration grating 9.5-20 %;
+    nor a pit under ``LARGE_IMPRINT_PX`` that the four-facet model could not fit (the one grating pit of
+    4.5 %).
     """
     out = [m for m in imps if m is not None and m.diameter_um > 3 * pixel_um]
     if min_depth_nm is not None:
         out = [m for m in out if m.depth_nm > min_depth_nm]
         if size_window_um is None:
-            out = [m for m in out if not m.depth_nm < MIN_IMPRINT_HD * m.diameter_um * 1e3]
+            out = [m for m in out if not (m.depth_nm < MIN_IMPRINT_HD * m.diameter_um * 1e3
+                                          or m.floor_share > MAX_FLOOR_SHARE or _no_pyramid(m, pixel_um))]
     if size_window_um is not None:
         lo, hi = size_window_um
         out = [m for m in out if lo <= m.diameter_um <= hi]
     return dedupe(out)
+
+
+def _no_pyramid(m, pixel_um) -> bool:
+    """True for an AFM pit small enough for the facet model (under ``LARGE_IMPRINT_PX``) that it did not fit."""
+    return not np.isfinite(m.fit_rms) and 0.5 * (m.diag1_um + m.diag2_um) / pixel_um < LARGE_IMPRINT_PX
 
 
 def tolerance_flags(diameter_um, nominal_um, hd, tolerance_um: float, min_hd: float) -> np.ndarray:

@@ -55,7 +55,8 @@ class SingleImprint:
 
     ``corners_um`` (4, 2) around the imprint; ``contour_um`` the contact boundary (closed
     polyline); ``edge_bow`` (4,) mid-edge displacement / (d/2), outward positive, edge k
-    from corner k to k + 1; ``floor_um`` where the floor is.
+    from corner k to k + 1; ``floor_um`` where the floor is; ``floor_share`` the share of the pit
+    deeper than 80 % of its depth (a pyramid 0.03-0.07, a flat-bottomed pit more).
     """
 
     x_um: float
@@ -75,6 +76,7 @@ class SingleImprint:
     cut_by_border: bool
     contour_um: np.ndarray = field(repr=False)
     n_pixels: int = 0
+    floor_share: float = float("nan")    # share of the pit deeper than 80 % of its depth
 
 
 # ----------------------------------------------------------------------------- levelling
@@ -223,15 +225,50 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     The ray is aimed along the valley between the two facets; the corner (where the valley meets the
     original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
     Where that fit fails, a straight line through the interpolated profile of the last few pixels before
-    the coarse corner gives it.
+    the coarse corner gives it. Where that fails too, the coarse corner may lie in a chip beside the
+    corner (a flat-bottomed spall the contour runs around): the V is looked for again up to 30 % further
+    in, and its crossing taken.
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
     if length < 4:
         return np.asarray(rc1, float)
-    e = v / length
-    # follow the ridge (the valley between two facets) to the corner: aim the ray at the
-    # lowest point across it, 5 px before the coarse corner
+    e = _aim_at_valley(zc, rc0, v / length, length)
+    at = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
+    if at is not None:
+        return rc0 + at * e
+    s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
+    if s0 is not None:
+        return rc0 + s0 * e
+    for trial in np.arange(length - 2.0, 0.7 * length, -2.0):
+        e_t = _aim_at_valley(zc, rc0, v / length, trial)
+        at = _valley_crossing(zr, rc0, e_t, trial, slope_floor, noise)
+        if at is not None:
+            return rc0 + at * e_t
+    return np.asarray(rc1, float)
+
+
+def _diagonal_angle(zs, pit, depth_nm, n_corners):
+    """Direction (rad, atan2(row, col)) of a diagonal from the facets' slopes inside the imprint, or None.
+
+    The facets' downhill directions are n-fold and lie between the diagonals. Taken from the pixels
+    between 20 and 85 % of the depth, it is blind to what lies outside the edges: the boundary's far
+    points (``rad ** 8``) had been turned 9 deg by a chip spalled beside one corner.
+    """
+    gr, gc = np.gradient(zs)
+    sel = pit & (zs < -0.2 * depth_nm) & (zs > -0.85 * depth_nm)
+    if sel.sum() < 20:
+        return None
+    phi = np.arctan2(gr[sel], gc[sel])
+    acc = np.sum(np.hypot(gr[sel], gc[sel]) * np.exp(1j * n_corners * phi))
+    if not abs(acc) > 0:
+        return None
+    return float(np.angle(acc) / n_corners + np.pi / n_corners)
+
+
+def _aim_at_valley(zc, rc0, e, length):
+    """Direction from ``rc0`` along the valley: aimed twice at the lowest point across the ray 5 px
+    before ``length``."""
     nrm = np.array([-e[1], e[0]])
     for _ in range(2):
         tt = np.arange(-3.0, 3.01, 0.25)
@@ -244,9 +281,11 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
             v = (length - 5.0) * e + tj * nrm
             e = v / np.hypot(*v)
             nrm = np.array([-e[1], e[0]])
-    at = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
-    if at is not None:
-        return rc0 + at * e
+    return e
+
+
+def _profile_crossing(zc, rc0, e, length, slope_floor, noise):
+    """Where a line through the interpolated profile of the last 9 px before ``length`` crosses 0, or None."""
     s = np.arange(length - 9.0, length + 3.0, 0.25)
     pts = rc0 + s[:, None] * e
     ny, nx = zc.shape
@@ -255,14 +294,12 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     # the straight part of the profile: clear of the noise and of the kink at the surface level
     use = inb & (p < -max(3 * noise, 1.5 * slope_floor)) & (s < length + 0.5) & np.isfinite(p)
     if use.sum() < 6:
-        return np.asarray(rc1, float)
+        return None
     k = np.polyfit(s[use], p[use], 1)
     if k[0] <= 0.2 * slope_floor:
-        return np.asarray(rc1, float)
+        return None
     s0 = -k[1] / k[0]
-    if abs(s0 - length) > 2.5:
-        return np.asarray(rc1, float)
-    return rc0 + s0 * e
+    return s0 if abs(s0 - length) <= 2.5 else None
 
 
 def _fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
@@ -371,14 +408,20 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     ang = np.arctan2(rel[:, 0], rel[:, 1])
     rad = np.hypot(rel[:, 0], rel[:, 1])
     nc = indenter.n_corners
-    theta = np.angle(np.sum(rad ** 8 * np.exp(1j * nc * ang))) / nc
+    theta = _diagonal_angle(zs, pit, depth, nc)
+    if theta is None:
+        theta = np.angle(np.sum(rad ** 8 * np.exp(1j * nc * ang))) / nc
     corners = []
     zc = ndimage.spline_filter(zr, order=3, mode="nearest")           # cubic coefficients, once per imprint
     for j in range(nc):
         phi = theta + 2 * np.pi * j / nc
         e = np.array([np.sin(phi), np.cos(phi)])            # (row, col) of the diagonal direction
         dphi = (ang - phi + np.pi) % (2 * np.pi) - np.pi
-        sec = np.abs(dphi) < np.pi / nc
+        # within a third of the quadrant: a chip spalled beside an edge near the corner reaches further
+        # along the diagonal 20-30 deg off it (17 px on a 150 px imprint)
+        sec = np.abs(dphi) < np.pi / (3 * nc)
+        if sec.sum() < 2:
+            sec = np.abs(dphi) < np.pi / nc
         if sec.sum() < 2:
             return None
         proj = rel[sec] @ e
@@ -420,7 +463,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
                          orientation_deg=float(orient), area_um2=area, depth_nm=float(depth),
                          floor_um=(float(fc * pixel_um), float(fr * pixel_um)), pileup_nm=pileup,
                          pileup_volume_um3=vol, edge_bow=bows, cut_by_border=cut, contour_um=cont_um,
-                         n_pixels=int(pit.sum()))
+                         n_pixels=int(pit.sum()), floor_share=float(np.mean(zs[pit] < -0.8 * depth)))
 
 
 def facet_apex_nm(z_nm: np.ndarray, pixel_um: float, imprint: SingleImprint, inset: float = 0.2) -> float:

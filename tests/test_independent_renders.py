@@ -107,3 +107,52 @@ def test_om_aperture_1um_at_65nm_pixels_leaves_the_sub_resolution_rim(tmp_path):
     assert np.abs(d_err).max() <= 100.0
     c_err = 1e3 * (np.column_stack([tab["x_um"], tab["y_um"]]) - txy[j])
     assert np.sqrt(np.mean(np.sum(c_err ** 2, axis=1))) <= 10.0
+
+
+# ----------------------------------------------------------------------------- fixtures/indent_afm_feedback
+
+def _feedback_errors(tmp_path, seed, noise_nm=0.0, **families):
+    """d, depth and area errors (%) and the worst corner (px) of one feedback-renderer map through the flow."""
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    r = render_feedback(seed, **families)
+    if noise_nm:
+        z = r.height_nm + np.random.default_rng(seed).normal(0, noise_nm, r.height_nm.shape)
+        r = dataclasses.replace(r, height_nm=z.astype(np.float32))
+    gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}")
+    tab = run_indents([gsf], None, IndentsOptions()).indents
+    t = r.truth
+    k = int(np.argmin(np.hypot(np.asarray(tab["x_um"]) - t["centre_um"][0], np.asarray(tab["y_um"]) - t["centre_um"][1])))
+    tc = np.array(t["corners_um"])
+    mc = _corners_um(tab, k)
+    corner = min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) / t["pixel_um"]
+    return (100 * (tab["d_um"][k] / t["d_um"] - 1), 100 * (tab["depth_nm"][k] / t["depth_nm"] - 1),
+            100 * (tab["area_um2"][k] / t["area_um2"] - 1), corner, t)
+
+
+_CLEAN = dict(chipping=False, feedback=False, particles=False, faults=False, scanner=False)
+
+
+@pytest.mark.parametrize("seed", [5, 12])
+def test_feedback_render_noise_free_and_far_field_in_corners(tmp_path, seed):
+    """Noise-free maps (tip only): seed 5 gave `no imprint found` (a noise level of float rounding masked the
+    whole field); seed 12 (80 % fill, pile-up reaching three sides, far field in the corners) read d +45 %:
+    a quadratic through the far field of a few corners extrapolated 150 nm under the imprint."""
+    d, depth, area, corner, t = _feedback_errors(tmp_path, seed, **_CLEAN)
+    assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
+    assert abs(depth) <= 1.0 and abs(area) <= 1.0 and corner <= 1.5, (depth, area, corner)
+
+
+def test_feedback_render_far_field_in_slivers(tmp_path):
+    """Seed 20 with 0.5 nm noise: 85 % fill, a rim on all four sides, the far field 1.4 % of the map in
+    slivers along two borders. A quadratic through the slivers sent the level 100 nm down (d +13 %); a
+    plane now (d +1.2 %). Held to the real-map goal (3 %): the original surface is barely in this map."""
+    d, _depth, _area, _corner, _t = _feedback_errors(tmp_path, 20, noise_nm=0.5, **_CLEAN)
+    assert abs(d) <= 3.0, d
+
+
+def test_feedback_render_chip_beside_a_corner(tmp_path):
+    """A flat-bottomed chip spalled beside the edge next to a corner: the boundary's far points had turned
+    the diagonals by 9 deg, and that corner sat on the chip's tip, 17 px off (d +1.5 %). The diagonals'
+    direction now comes from the facets' slopes. (The chip is in the contact area: not asserted.)"""
+    d, _depth, _area, corner, t = _feedback_errors(tmp_path, 10, noise_nm=0.5, **dict(_CLEAN, chipping=True))
+    assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]) and corner <= 1.5, (d, corner)
