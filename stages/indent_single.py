@@ -225,9 +225,7 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     The ray is aimed along the valley between the two facets; the corner (where the valley meets the
     original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
     Where that fit fails, a straight line through the interpolated profile of the last few pixels before
-    the coarse corner gives it. Where that fails too, the coarse corner may lie in a chip beside the
-    corner (a flat-bottomed spall the contour runs around): the V is looked for again up to 30 % further
-    in, and its crossing taken.
+    the coarse corner gives it.
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
@@ -240,11 +238,6 @@ def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
     if s0 is not None:
         return rc0 + s0 * e
-    for trial in np.arange(length - 2.0, 0.7 * length, -2.0):
-        e_t = _aim_at_valley(zc, rc0, v / length, trial)
-        at = _valley_crossing(zr, rc0, e_t, trial, slope_floor, noise)
-        if at is not None:
-            return rc0 + at * e_t
     return np.asarray(rc1, float)
 
 
