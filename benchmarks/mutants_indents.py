@@ -185,4 +185,11 @@ MUTANTS_INDENTS = [
         "new": "                                          )]\n",
         "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
     },
+    {   # the corner's sector the whole quadrant again: a chip's tip 25 deg off the diagonal (session 13)
+        "name": "single-corner-sector-quadrant",
+        "file": "stages/indent_single.py",
+        "old": "        sec = np.abs(dphi) < np.pi / (3 * nc)\n",
+        "new": "        sec = np.abs(dphi) < np.pi / nc\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner"],
+    },
 ]
