@@ -49,6 +49,8 @@ RIDGE_OVERRIDE_MAX = 0.04
 #: off normal; on imprints outlined partly by grain boundaries (BSE, strong grain) the fits that went
 #: wrong had 0.09 and 0.27, those that went right 0.014 at most
 MAX_APEX_OFF_CENTRE = 0.06
+COARSE_MAX_ANGLE_DEG = 35.0     # a coarsest-level fit further from square than this is not refined
+COARSE_MAX_APEX_OFF = 0.2
 #: the finest level of the whole-imprint fit has at most this many blocks across the imprint (mean diagonal);
 #: the corner refit at most twice as many
 FINEST_PX = 160
@@ -309,6 +311,10 @@ def _refine(img, corners, apex, d_px, square=None):
                 if best is None or c < best[0]:
                     best = (c, q)
             p = np.concatenate([_lm(model.residual, best[1], 0.05 * f, 20), np.zeros(4)])
+            if not _plausible(p[2:10].reshape(4, 2), p[:2]):
+                # far from a square with its apex inside: the finer levels (most of the time) would not
+                # make it one (grain pieces of a BSE image: 1.2 s each)
+                return p[2:10].reshape(4, 2), p[:2], p[10:14], None
         elif i < len(levels) - 1:
             # to convergence (stops early): 8 iterations had left a bowed 220 px imprint at 202 px
             p = _lm(model.residual, p, 0.05 * f, 20, bow_max=bow_max)
@@ -328,6 +334,17 @@ def _refine(img, corners, apex, d_px, square=None):
     if len(p) == 10:                           # no level had pixels enough to fit
         p = np.concatenate([p, np.zeros(4)])
     return p[2:10].reshape(4, 2), p[:2], p[10:14], model
+
+
+def _plausible(corners, apex) -> bool:
+    """A coarse fit the finer levels can make an imprint: corner angles within ``COARSE_MAX_ANGLE_DEG``
+    of 90, diagonals within a factor of 2, the apex within ``COARSE_MAX_APEX_OFF`` of d from the centre
+    (the final checks are 20 deg, 1.67 and ``MAX_APEX_OFF_CENTRE``)."""
+    d1, d2 = np.hypot(*(corners[0] - corners[2])), np.hypot(*(corners[1] - corners[3]))
+    if not (d1 > 0 and d2 > 0 and 0.5 < d1 / d2 < 2.0):
+        return False
+    off = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
+    return bool(np.all(np.abs(_angles_deg(corners) - 90.0) < COARSE_MAX_ANGLE_DEG) and off < COARSE_MAX_APEX_OFF)
 
 
 def _ridge_corners(img, corners, apex, noise, delta_px=2.5):
