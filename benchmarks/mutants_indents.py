@@ -71,14 +71,14 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "    cut = bool(cut or outside)\n",
         "new": "    cut = bool(outside)\n",
-        "tests": [_SINGLE + "::test_cut_by_border_flagged"],
+        "tests": [_SINGLE + "::test_cut_by_border_flagged", _SINGLE + "::test_edge_across_the_border_flagged_with_corners_inside"],
     },
     {   # the corner refined on the ray ignores the straight-line zero crossing (coarse corner kept)
         "name": "single-corner-not-refined",
         "file": "stages/indent_single.py",
         "old": "    s0 = -k[1] / k[0]\n",
         "new": "    s0 = length - 1.0\n",
-        "tests": [_SINGLE + "::test_single_imprint_against_truth"],
+        "tests": [_SINGLE + "::test_single_imprint_against_truth", _SINGLE + "::test_profile_crossing_where_the_valley_fit_fails"],
     },
     {   # pile-up volume in µm² nm taken as µm³ (the 1e-3 dropped)
         "name": "single-pileup-volume-units",

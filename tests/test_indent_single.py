@@ -147,6 +147,39 @@ def test_cut_by_border_flagged(tmp_path):
     assert res.summary["n_cut_by_border"] == 1
 
 
+def test_edge_across_the_border_flagged_with_corners_inside():
+    """Edges along the axes, bowed outwards by 8 % of d/2; the right corners 1 px inside the last column, the
+    right edge's middle 5 px beyond it: the contact boundary is open, so the imprint is cut (no area), though
+    every corner was found inside the field (where they are: within 0.2 px)."""
+    from markcal.stages.indent_single import measure_single
+    n, px, a, depth, bow = 200, 0.1, 60.0, 800.0, 0.08
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    cx, cy = n - 2 - a, 100.0
+    u, v = xx - cx, yy - cy
+    ru = np.abs(u) / (a * (1 + bow * (1 - np.clip(v / a, -1, 1) ** 2)))
+    rv = np.abs(v) / (a * (1 + bow * (1 - np.clip(u / a, -1, 1) ** 2)))
+    z = -depth * np.clip(1 - np.maximum(ru, rv), 0, None) + np.random.default_rng(0).normal(0, 0.5, (n, n))
+    m = measure_single(z, px, 0.5, cy, cx, a)
+    true_rc = np.array([[cy + sr * a, cx + sc * a] for sr in (-1, 1) for sc in (-1, 1)])
+    got_rc = m.corners_um[:, ::-1] / px
+    assert max(np.min(np.hypot(*(got_rc - t).T)) for t in true_rc) <= 0.2
+    assert got_rc[:, 1].max() < n - 1
+    assert m.cut_by_border and np.isnan(m.area_um2)
+
+
+def test_profile_crossing_where_the_valley_fit_fails():
+    """The fallback corner (a line through the interpolated profile before the coarse corner): on a ramp of
+    40 nm/px meeting the surface at column 80.3, with the coarse corner 1.7 px beyond, it crosses at 80.3."""
+    from scipy import ndimage
+    from markcal.stages.indent_single import _profile_crossing
+    cc = np.mgrid[0:60, 0:120][1].astype(float)
+    z = np.minimum(40.0 * (cc - 80.3), 0.0)
+    zc = ndimage.spline_filter(z, order=3, mode="nearest")
+    rc0 = np.array([30.0, 20.0])
+    s0 = _profile_crossing(zc, rc0, np.array([0.0, 1.0]), 60.3 + 1.7, 40.0, 0.5)
+    assert s0 == pytest.approx(60.3, abs=0.1)
+
+
 def test_cli_render_single_and_measure(tmp_path, capsys):
     out = str(tmp_path / "r")
     assert main(["render", "afm", "--single", "--seed", "5", "--out", out, "--quiet"]) == 0
