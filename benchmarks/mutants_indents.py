@@ -192,4 +192,19 @@ MUTANTS_INDENTS = [
         "new": "        sec = np.abs(dphi) < np.pi / nc\n",
         "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner"],
     },
+    {   # squares under the minimum diagonal scored again: a dust blob wins on the real SEM image (session 13)
+        "name": "squares-under-minimum-size",
+        "file": "stages/indent_square_search.py",
+        "old": "    sides = np.unique(np.ceil(side_min * SIZE_STEP ** np.arange(200)).astype(int))\n",
+        "new": "    sides = np.unique(np.round(side_min * SIZE_STEP ** np.arange(200)).astype(int))\n",
+        "tests": ["tests/test_indent_micrograph.py::test_real_sem_square_search_lands_on_the_imprint"],
+    },
+    {   # the squares ranked by the weakest edge's plain mean gradient (session 13)
+        "name": "squares-plain-mean-score",
+        "file": "stages/indent_square_search.py",
+        "old": "        found.append(((float(score[r, c]) - mu) * np.sqrt(L) / sd, c, r, L))\n",
+        "new": "        found.append((float(score[r, c]), c, r, L))\n",
+        "tests": ["tests/test_indent_micrograph.py::test_real_sem_square_search_lands_on_the_imprint",
+                  "tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
+    },
 ]

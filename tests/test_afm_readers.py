@@ -147,6 +147,14 @@ def test_sem_pixel_from_fei_tag_not_dpi():
     assert im.shape == (1103, 1536) and im.kind == "om"
 
 
+def test_unitless_gwy_with_pixel_size_given_still_refused_for_its_heights():
+    """The real test.gwy has no unit string at all (xreal = yreal = 128; realdata README): a pixel size given on the
+    command line answers the lateral unit, not the height unit, so the map is still refused, for that reason."""
+    path = _real("afm/gwyddion/test.gwy")
+    with pytest.raises(MarkcalError, match="channel 'Test' has no height unit"):
+        read_image(path, pixel_size_um=0.5)
+
+
 # ----------------------------------------------------------------------------- TIFF resolution tags
 
 def test_tiff_dpi_tags_never_a_pixel_size(tmp_path):

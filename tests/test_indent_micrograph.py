@@ -194,3 +194,43 @@ def test_real_sem_corners_and_area_against_manual_reading():
 
     assert abs(quad(m.corners_um) / quad(manual * img.pixel_um) - 1) <= 0.04
     assert np.isfinite(m.edge_bow) and (m.area_um2 > quad(m.corners_um)) == (m.edge_bow > 0)
+
+
+def _real_sem_by_squares():
+    """The real SEM image's imprints fitted from the BSE fallback's squares alone, the squares, the manual
+    corners, and the pixel size; None without the file."""
+    from markcal.stages.image_io import read_image
+    from markcal.stages.indent_micrograph import MIN_DIAGONAL_PX, _measure_all
+    from markcal.stages.indent_square_search import square_candidates
+    path = _realdata() / SEM_FILE
+    if not path.is_file():
+        pytest.skip(f"real file {SEM_FILE} not present (../shared/realdata)")
+    img = read_image(str(path))
+    work = img.data[:img.data.shape[0] - info_bar_rows(img.data)]
+    cands = square_candidates(work, MIN_DIAGONAL_PX)
+    manual = np.array([(915, 528), (752, 653), (622, 497), (783, 363)], float)
+    return _measure_all(work, img.pixel_um, MIN_DIAGONAL_PX, cands), cands, manual, img.pixel_um
+
+
+def test_real_sem_square_search_lands_on_the_imprint():
+    """The real SEM image through the BSE fallback alone (squares with four clear edges as fit starts; the
+    outline detection finds this imprint, so the flow never runs the fallback on it). A dark dust blob of
+    40 px had won while squares under the minimum diagonal were scored (nothing found); and a short edge's
+    mean gradient can beat a long one's by chance, so the score is the weakest edge's significance. Now a
+    square lies on the imprint (within a fifth of d of the manual centre) and the fit from it finds one
+    imprint centred within 5 % of d of the manual corners' mean, its mean diagonal within 10 % of the manual
+    reading (ranked by the plain mean, the squares led the fit to 10.6 um; the 2 % goal: the test below)."""
+    imps, cands, manual, px = _real_sem_by_squares()
+    d_px = 19.09 / px
+    assert any(np.hypot(*(c[1] - manual.mean(axis=0))) < 0.2 * d_px for c in cands)
+    assert len(imps) == 1
+    assert np.hypot(imps[0].x_um / px - manual[:, 0].mean(), imps[0].y_um / px - manual[:, 1].mean()) < 0.05 * d_px
+    assert abs(imps[0].d_um / 19.09 - 1) <= 0.10
+
+
+@pytest.mark.xfail(strict=True, reason="from the square search's starts the fit stops at 17.93 um (-6.1 %), "
+                   "on a quadrilateral inside the imprint; the outline detection's starts reach 19.16 um")
+def test_real_sem_square_search_diagonal_against_manual_reading():
+    """The same imprint's mean diagonal against the manual 19.09 um, to the SEM goal of 2 % (not met)."""
+    imps, _cands, _manual, _px = _real_sem_by_squares()
+    assert len(imps) == 1 and abs(imps[0].d_um / 19.09 - 1) <= 0.02
