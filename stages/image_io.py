@@ -208,8 +208,7 @@ def _read_tiff(path, channel=None):
         runit = tags.get("ResolutionUnit")
         desc = page.description or ""
     arr = np.squeeze(arr)
-    if arr.ndim == 3 and arr.shape[-1] in (3, 4):           # RGB(A) micrograph: luminance
-        arr = arr[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    arr = _luminance(arr)
     if arr.ndim != 2:
         raise MarkcalError(f"not a single-plane image (shape {arr.shape})")
     meta = {"format": "tiff", "dtype": str(arr.dtype)}
@@ -237,6 +236,13 @@ def _read_tiff(path, channel=None):
     return arr.astype(np.float64), px, "om", meta
 
 
+def _luminance(arr):
+    """An RGB(A) micrograph as luminance (Rec. 601 weights); anything else as it is."""
+    if arr.ndim == 3 and arr.shape[-1] in (3, 4):
+        return arr[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    return arr
+
+
 def _read_picture(path, channel=None):
     """A PNG, JPEG or BMP micrograph (Pillow): grey values, RGB as luminance; no pixel size.
 
@@ -247,8 +253,7 @@ def _read_picture(path, channel=None):
     arr, dpi, _camera = read_pixels(path, "")
     arr = np.squeeze(arr)
     bits = int(arr.dtype.itemsize * 8)
-    if arr.ndim == 3 and arr.shape[-1] in (3, 4):           # RGB(A) micrograph: luminance
-        arr = arr[..., :3].astype(np.float64) @ np.array([0.299, 0.587, 0.114])
+    arr = _luminance(arr)
     if arr.ndim != 2:
         raise MarkcalError(f"not a single-plane image (shape {arr.shape})")
     _single_channel("image", channel)

@@ -12,7 +12,7 @@ import numpy as np
 from scipy import ndimage
 
 from .indent_geometry import robust_plane
-from .level import Levelled, _remove_scars, noise_nm, poly_surface
+from .level import Levelled, _remove_scars, _row_nanmedian, noise_nm, poly_surface
 
 __all__ = ["level_single"]
 
@@ -149,12 +149,8 @@ def _side_strip_offsets(z, valid):
     of a row, and rows where it does are corrected by the far-field offsets of the later rounds.
     """
     w = max(3, z.shape[1] // 10)
-    strips = np.concatenate([z[:, :w], z[:, -w:]], axis=1)
-    ok = np.concatenate([valid[:, :w], valid[:, -w:]], axis=1)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)                    # rows without valid strips
-        off = np.nanmedian(np.where(ok, strips, np.nan), axis=1)
-    off = np.where(np.isfinite(off), off, 0.0)
+    off = _row_nanmedian(np.concatenate([z[:, :w], z[:, -w:]], axis=1),
+                         np.concatenate([valid[:, :w], valid[:, -w:]], axis=1))
     return off - np.median(off)
 
 

@@ -29,6 +29,7 @@ from scipy import ndimage
 from .errors import MarkcalError
 from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 from .indent_micrograph_kernel import quad_design
+from .indent_select import dedupe
 from .indent_square_search import square_candidates
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
@@ -508,12 +509,7 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
 
 def _measure_all(work, pixel_um, min_diagonal_px, candidates) -> list:
     """The imprints the fit confirms from ``candidates`` (corners, apex, square), one per place."""
-    out = []
-    for cand in candidates:
-        m = _measure_one(work, pixel_um, min_diagonal_px, *cand)
-        if m is not None and all(np.hypot(m.x_um - o.x_um, m.y_um - o.y_um) > 0.25 * o.d_um for o in out):
-            out.append(m)
-    return out
+    return dedupe([m for m in (_measure_one(work, pixel_um, min_diagonal_px, *c) for c in candidates) if m is not None])
 
 
 def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
