@@ -152,8 +152,8 @@ MUTANTS_INDENTS = [
     },
     {   # no square search when the outline finds nothing (BSE grain; session 13)
         "name": "micrograph-no-square-search",
-        "file": "stages/indent_micrograph.py",
-        "old": "    if not out:\n",
+        "file": "pipeline/flows/indents.py",
+        "old": "    if not imps and spec is None and img.kind != \"afm\":\n",
         "new": "    if False:\n",
         "tests": ["tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
     },

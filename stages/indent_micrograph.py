@@ -470,7 +470,8 @@ def find_imprints(img: np.ndarray, min_diagonal_px: float = MIN_DIAGONAL_PX) -> 
     return _coarse(np.asarray(img, np.float64), min_diagonal_px)
 
 
-def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float = MIN_DIAGONAL_PX) -> tuple:
+def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float = MIN_DIAGONAL_PX,
+                       squares: bool = False) -> tuple:
     """Find and measure every single Vickers imprint in a light or electron micrograph.
 
     Parameters
@@ -481,6 +482,9 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         Pixel size (µm).
     min_diagonal_px : float
         Smallest mean diagonal (px) taken as an imprint.
+    squares : bool
+        Start the fits from squares with four clear edges (``indent_square_search``) instead of the
+        outline detection's candidates: for grainy (BSE) images where the outline finds nothing.
 
     Returns
     -------
@@ -499,12 +503,11 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
         img = np.where(bad, np.median(img[~bad]) if (~bad).any() else 0.0, img)
     bar = info_bar_rows(img)
     work = img[:img.shape[0] - bar] if bar else img
-    out = _measure_all(work, pixel_um, min_diagonal_px, _coarse(work, min_diagonal_px))
-    if not out:
-        # strong grain contrast (BSE) cuts the outline into pieces that start no fit near the imprint:
-        # squares with four clear edges start the same fit and face the same checks
-        out = _measure_all(work, pixel_um, min_diagonal_px, square_candidates(work, min_diagonal_px))
-    return out, bar
+    # strong grain contrast (BSE) cuts the outline into pieces that start no fit near the imprint: squares
+    # with four clear edges start the same fit and face the same checks (the flow's last resort: on an OM
+    # array of 1 µm dots a square through several dots passed them)
+    starts = square_candidates(work, min_diagonal_px) if squares else _coarse(work, min_diagonal_px)
+    return _measure_all(work, pixel_um, min_diagonal_px, starts), bar
 
 
 def _measure_all(work, pixel_um, min_diagonal_px, candidates) -> list:

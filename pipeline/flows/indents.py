@@ -255,6 +255,10 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         info.update(noise_rel=sig)
     window = None if spec is None else (0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um)
     imps = sel.accept_imprints(imps, px, floor, window)
+    if not imps and spec is None and img.kind != "afm":
+        # the last resort: a single imprint whose outline strong grain contrast (BSE) cut into pieces
+        say(f"{name}: looking for imprints by their four edges")
+        imps, image = sel.accept_imprints(measure_micrograph(img.data, px, squares=True)[0], px), img.data
     if not imps:
         raise MarkcalError("no imprint found")
     n = len(imps)
