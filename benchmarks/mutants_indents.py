@@ -153,9 +153,23 @@ MUTANTS_INDENTS = [
     {   # no square search when the outline finds nothing (BSE grain; session 13)
         "name": "micrograph-no-square-search",
         "file": "pipeline/flows/indents.py",
-        "old": "    if not imps and spec is None and img.kind != \"afm\":\n",
+        "old": "    if not imps and info.get(\"method\") == \"dots\" and spec is None and not squares_tried:\n",
         "new": "    if False:\n",
+        "tests": ["tests/test_micrograph_independent.py::test_grain_spots_of_one_imprint_refused_by_their_sizes"],
+    },
+    {   # grain spots of every size go to the dots' slow shared fit first (session 14)
+        "name": "flow-dots-fit-before-four-edges",
+        "file": "pipeline/flows/indents.py",
+        "old": "    squares = spec is None and sel.mixed_spots([c[2] for c in cands])\n",
+        "new": "    squares = False\n",
         "tests": ["tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
+    },
+    {   # dots of every size after the fit taken as imprints (session 14)
+        "name": "select-one-size-always",
+        "file": "stages/indent_select.py",
+        "old": "    if len(imps) < 5:\n        return True\n",
+        "new": "    if True:\n        return True\n",
+        "tests": ["tests/test_micrograph_independent.py::test_grain_without_an_imprint_is_no_imprint"],
     },
     {   # a collapsed mask falls back to the border ring in every round (session 13)
         "name": "level-collapse-to-ring",

@@ -206,15 +206,44 @@ def _afm_imprint(lv, px, r, c, rad):
     return sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars), single, px)
 
 
-def _micrograph_single(img: Image, say, info) -> list:
-    """Single imprints of a light or electron micrograph (empty when there are none this large)."""
+def _micrograph_single(img: Image, say, info, squares: bool = False) -> list:
+    """Single imprints of a light or electron micrograph (empty when there are none this large); ``squares``:
+    started from squares with four clear edges instead of the outline (grain contrast)."""
     name = os.path.basename(img.source)
-    say(f"{name}: looking for single imprints in {img.shape[0]} x {img.shape[1]} micrograph")
-    imps, bar = measure_micrograph(img.data, img.pixel_um)
-    info.update(bar_rows=bar, method="four-facet quadrilateral fit (single imprints)")
-    if bar:
-        say(f"{name}: information bar of {bar} rows at the bottom left out")
+    say(f"{name}: looking for " + ("imprints by their four edges" if squares else
+                                   f"single imprints in {img.shape[0]} x {img.shape[1]} micrograph"))
+    imps, bar = measure_micrograph(img.data, img.pixel_um, squares=squares)
+    imps = sel.accept_imprints(imps, img.pixel_um)
+    if imps:
+        info.update(bar_rows=bar, method="four-facet quadrilateral fit (single imprints)")
+        if bar:
+            say(f"{name}: information bar of {bar} rows at the bottom left out")
     return imps
+
+
+def _micrograph_dots(img: Image, spec, opt, say, info, held) -> tuple:
+    """The dark dots of an OM array micrograph, fitted with one shared model; without a spec, when the spots
+    come in every size (grain or dust), a single imprint found by its four edges first.
+
+    Returns the imprints, the image to draw them on (divided by the illumination for dots) and whether the
+    four-edge search has run.
+    """
+    name, px = os.path.basename(img.source), img.pixel_um
+    say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
+    bg = ind.om_background(img.data, px)
+    cands, sig = ind.detect_dots(img.data, px, background=bg)
+    squares = spec is None and sel.mixed_spots([c[2] for c in cands])
+    if squares:
+        # the dots' shared fit is slow on hundreds of grain specks (10-70 s on a BSE image) and not meant for them
+        say(f"{name}: {len(cands)} dark spots of every size (grain or dust)")
+        if imps := _micrograph_single(img, say, info, squares=True):
+            return imps, img.data, True
+    say(f"{name}: fitting {len(cands)} candidates")
+    # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
+    # does not describe comes back as None
+    psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
+    info.update(noise_rel=sig, method="dots")
+    return ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf, held=held), img.data / bg, squares
 
 
 def _measure(img: Image, spec, opt, say, t0, held=None):
@@ -242,25 +271,22 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         # one or more single imprints (at least MIN_DIAGONAL_PX across): corners from the four-facet fit
         imps, floor, image = single, None, img.data
     else:
-        say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
-        bg = ind.om_background(img.data, px)
-        cands, sig = ind.detect_dots(img.data, px, background=bg)
-        say(f"{name}: fitting {len(cands)} candidates")
-        # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
-        # does not describe comes back as None
-        psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
-        imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf, held=held)
-        floor = None
-        image = img.data / bg
-        info.update(noise_rel=sig)
+        (imps, image, squares_tried), floor = _micrograph_dots(img, spec, opt, say, info, held), None
     window = None if spec is None else (0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um)
     imps = sel.accept_imprints(imps, px, floor, window)
-    if not imps and spec is None and img.kind != "afm":
+    spots = ""
+    if info.get("method") == "dots" and spec is None and not sel.one_size(imps):
+        # grain or dust: an array of one load has one size
+        d = np.array([m.d_um for m in imps])
+        spots = (f"{len(imps)} dark spots of {np.percentile(d, 10):.2g}-{np.percentile(d, 90):.2g} µm have no "
+                 "common size (grain or dust; an array spec measures them as imprints)")
+        say(f"{name}: {spots}")
+        imps = []
+    if not imps and info.get("method") == "dots" and spec is None and not squares_tried:
         # the last resort: a single imprint whose outline strong grain contrast (BSE) cut into pieces
-        say(f"{name}: looking for imprints by their four edges")
-        imps, image = sel.accept_imprints(measure_micrograph(img.data, px, squares=True)[0], px), img.data
+        imps, image = _micrograph_single(img, say, info, squares=True), img.data
     if not imps:
-        raise MarkcalError("no imprint found")
+        raise MarkcalError("no imprint found" + (f": {spots}" if spots else ""))
     n = len(imps)
     xy = np.array([[m.x_um, m.y_um] for m in imps])
     missing = []
