@@ -67,7 +67,7 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
         if not np.isfinite(sigma) or sigma <= 0:
             sigma = 1.0
         if it == 0:
-            feat = _first_features(z, keep, valid, sigma)
+            feat, off0 = _first_features(z, keep, valid, sigma)
         else:
             zs = ndimage.gaussian_filter(z, 1.0)
             feat = ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > 5 * sigma,
@@ -77,7 +77,10 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
             # nearly all masked: the first round's ring, later the last round's far field (a bow fitted to
             # the ring alone, lobes and imprint corners in it, had sent a 4 µm imprint 150 nm down)
             keep = valid & ring if it == 0 else prev
-        surf = poly_surface(z, keep, _bow_degree(keep), step=1 if keep.sum() < 3000 else 2)
+        # the first round's surface under the side strips' line offsets when they made its mask: offsets of
+        # hundreds of nm (a scan flattened line by line, imprint and all) bent a quadratic 240 nm
+        surf = poly_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep),
+                            step=1 if keep.sum() < 3000 else 2)
         if it == 0:
             bow = float(np.ptp((surf + ring_bow)[keep])) if keep.any() else 0.0
         surf_total += surf
@@ -127,7 +130,8 @@ def _bow_degree(keep):
 
 
 def _first_features(z, keep, valid, sigma):
-    """The first round's feature mask: clear features only (line offsets are still in), grown by 3 px.
+    """The first round's feature mask: clear features only (line offsets are still in), grown by 3 px,
+    and the line offsets (nm per row) it was found under.
 
     The rows' drift (tens of nm over a scan) can stand above the threshold over most of the field; the
     map with each row's side-strip median removed is then masked instead, when that leaves more of the
@@ -135,11 +139,11 @@ def _first_features(z, keep, valid, sigma):
     """
     thr = max(5 * sigma, 20.0)
     grow = np.ones((7, 7), bool)
-    masks = []
-    for zz in (z, z - _side_strip_offsets(z, valid)[:, None]):
-        zs = ndimage.gaussian_filter(zz, 1.0)
-        masks.append(ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > thr, structure=grow))
-    return min(masks, key=lambda m: int(m.sum()))
+    found = []
+    for off in (np.zeros(z.shape[0]), _side_strip_offsets(z, valid)):
+        zs = ndimage.gaussian_filter(z - off[:, None], 1.0)
+        found.append((ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > thr, structure=grow), off))
+    return min(found, key=lambda f: int(f[0].sum()))
 
 
 def _side_strip_offsets(z, valid):

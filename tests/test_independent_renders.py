@@ -33,9 +33,27 @@ def _corners_um(tab, k):
 @pytest.mark.parametrize("seed,margin", [(5, None), (6, 3.0), (2, None), (39, 3.0)])
 def test_single_ruled_imprint_against_truth(tmp_path, seed, margin):
     r = render_single_ruled(seed, size_px=256, corner_margin_px=margin)
-    t, px = r.truth, r.pixel_um
     gsf, _ = write_single_ruled(r, str(tmp_path), "map")
-    tab = run_indents([gsf], None, IndentsOptions(load_mN=500.0)).indents
+    _assert_single_goals(run_indents([gsf], None, IndentsOptions(load_mN=500.0)).indents, r)
+
+
+@pytest.mark.parametrize("seed,how", [(3, "mean"), (5, "median")])
+def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how):
+    """A scan flattened line by line before export, imprint and all (each row's mean or median taken off: a
+    flatten of order 0 without a mask): the rows through the imprint stand up to 300 nm off. The first
+    levelling round fitted its quadratic through those offsets (240 nm of bend) and masked 97 % of the field:
+    seed 3 as mean-flattened gave no imprint, seed 5 median-flattened d -5.9 % and depth -18 %. The surface
+    of the first round is now fitted under the side strips' offsets. Tolerances: the single-imprint goals."""
+    r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
+    z = r.height_nm.astype(float)
+    z -= (z.mean(axis=1) if how == "mean" else np.median(z, axis=1))[:, None]
+    gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=z.astype(np.float32)), str(tmp_path), "map")
+    _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
+
+
+def _assert_single_goals(tab, r):
+    """The issue's goals for one rendered imprint, against the ruled renderer's truth."""
+    t, px = r.truth, r.pixel_um
     assert len(tab["x_um"]) == 1                                         # one imprint, nothing else
     # goal: mean diagonal within 0.5 % or 1 px, whichever is larger
     assert abs(tab["d_um"][0] - t["d_mean_um"]) <= max(0.005 * t["d_mean_um"], px)
@@ -62,14 +80,7 @@ def test_single_ruled_imprint_with_radial_cracks(tmp_path):
     assert len(cracks) == 4
     r = dataclasses.replace(r, height_nm=(r.height_nm + groove).astype(np.float32))
     gsf, _ = write_single_ruled(r, str(tmp_path), "map")
-    tab = run_indents([gsf], None, IndentsOptions()).indents
-    assert len(tab["x_um"]) == 1
-    assert abs(tab["d_um"][0] - t["d_mean_um"]) <= max(0.005 * t["d_mean_um"], px)
-    assert abs(tab["area_um2"][0] / t["area_below_original_level_um2"] - 1) <= 0.01
-    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
-    mc = _corners_um(tab, 0)
-    worst = min(np.max(np.hypot(*(mc[list(p)] - corners).T)) for p in itertools.permutations(range(4)))
-    assert worst <= 1.5 * px
+    _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
 def test_om_aperture_array_against_truth(tmp_path):
