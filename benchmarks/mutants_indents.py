@@ -171,6 +171,13 @@ MUTANTS_INDENTS = [
         "new": "    if True:\n        return True\n",
         "tests": ["tests/test_micrograph_independent.py::test_grain_without_an_imprint_is_no_imprint"],
     },
+    {   # the first round's surface fitted through the line offsets of a row-flattened scan (session 14)
+        "name": "level-first-surface-through-offsets",
+        "file": "stages/indent_level.py",
+        "old": "        surf = poly_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep),\n",
+        "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
+        "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_flattened_line_by_line"],
+    },
     {   # a collapsed mask falls back to the border ring in every round (session 13)
         "name": "level-collapse-to-ring",
         "file": "stages/indent_level.py",
