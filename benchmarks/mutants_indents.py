@@ -178,6 +178,13 @@ MUTANTS_INDENTS = [
         "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
         "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_flattened_line_by_line"],
     },
+    {   # pits whose contact area is no quadrilateral's between their corners taken as imprints (session 14)
+        "name": "select-any-area-ratio",
+        "file": "stages/indent_select.py",
+        "old": "AREA_RATIO_RANGE = (0.6, 1.4)\n",
+        "new": "AREA_RATIO_RANGE = (0.0, float(\"inf\"))\n",
+        "tests": ["tests/test_independent_renders.py::test_inverted_heights_give_no_half_size_imprints"],
+    },
     {   # a collapsed mask falls back to the border ring in every round (session 13)
         "name": "level-collapse-to-ring",
         "file": "stages/indent_level.py",

@@ -51,6 +51,20 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
+def test_inverted_heights_give_no_half_size_imprints(tmp_path, capsys):
+    """A map whose heights are inverted (a channel of the other sign): the pits beside the pile-up lobes were
+    reported as two imprints of half the true diagonal (seed 1: 5.0 and 4.9 µm for 10.8). Their contact areas
+    are 1.6 times d^2 / 2 (imprints on five renderers: 0.76-1.22), so they are refused: one line, exit 1."""
+    from markcal.pipeline.cli import main
+    r = render_single_ruled(1, size_px=256)
+    gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=(-r.height_nm).astype(np.float32)), str(tmp_path),
+                                "map")
+    out = tmp_path / "out"
+    assert main(["indents", gsf, "--out", str(out), "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"markcal: error: {gsf}: no imprint found"] and not out.exists()
+
+
 def _assert_single_goals(tab, r):
     """The issue's goals for one rendered imprint, against the ruled renderer's truth."""
     t, px = r.truth, r.pixel_um
