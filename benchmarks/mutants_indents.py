@@ -183,7 +183,14 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_select.py",
         "old": "AREA_RATIO_RANGE = (0.6, 1.4)\n",
         "new": "AREA_RATIO_RANGE = (0.0, float(\"inf\"))\n",
-        "tests": ["tests/test_independent_renders.py::test_inverted_heights_give_no_half_size_imprints"],
+        "tests": ["tests/test_independent_renders.py::test_pits_beside_lobes_are_no_imprints"],
+    },
+    {   # a map whose features stand up measured as if its heights were right (session 14)
+        "name": "flow-inverted-heights-measured",
+        "file": "pipeline/flows/indents.py",
+        "old": "    if up <= down:\n        return\n",
+        "new": "    if True:\n        return\n",
+        "tests": ["tests/test_independent_renders.py::test_inverted_heights_are_refused"],
     },
     {   # a collapsed mask falls back to the border ring in every round (session 13)
         "name": "level-collapse-to-ring",

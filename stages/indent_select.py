@@ -3,7 +3,8 @@
 - :func:`merge_afm`: one AFM imprint from the facet model and the single-imprint metrology;
 - :func:`accept_imprints`: depth floor, size window, duplicates;
 - :func:`tolerance_flags`: diameter within tolerance of the nominal and H/D above its minimum;
-- :func:`mixed_spots`, :func:`one_size`: whether a micrograph's dark dots are imprints of one load at all.
+- :func:`mixed_spots`, :func:`one_size`: whether a micrograph's dark dots are imprints of one load at all;
+- :func:`raised_and_sunk_um3`: whether an AFM map's features stand up rather than lie down (inverted heights).
 """
 from __future__ import annotations
 
@@ -11,11 +12,13 @@ import dataclasses
 
 import numpy as np
 
+from scipy import ndimage
+
 from . import detect
 from .indent_geometry import Imprint
 
 __all__ = ["LARGE_IMPRINT_PX", "rounding_px", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags",
-           "mixed_spots", "one_size"]
+           "mixed_spots", "one_size", "raised_and_sunk_um3"]
 
 #: from this mean diagonal (px) on, corners come from the contact boundary (extreme points on
 #: bowed edges); below it the facet model's corners are the better estimate
@@ -158,6 +161,19 @@ def one_size(imps: list) -> bool:
         return True
     d = np.array([m.d_um for m in imps])
     return bool(np.mean(np.abs(d / np.median(d) - 1) <= ONE_SIZE_TOLERANCE) >= MIN_ONE_SIZE_SHARE)
+
+
+def raised_and_sunk_um3(z_nm: np.ndarray, noise_nm: float, pixel_um: float) -> tuple:
+    """Volumes (µm³) standing above and lying below a levelled map's surface, beyond 5 noise levels (smoothed by
+    1 px).
+
+    Imprints are pits: measured on four renderers (single imprints and arrays, 39 maps) what stands up (pile-up)
+    is 0.04-0.44 of what lies down; with the heights negated, 2.3-25 times it.
+    """
+    zs = ndimage.gaussian_filter(np.nan_to_num(np.asarray(z_nm, float)), 1.0)
+    t = 5.0 * noise_nm
+    scale = pixel_um * pixel_um * 1e-3
+    return float(np.sum(np.clip(zs - t, 0.0, None)) * scale), float(np.sum(np.clip(-zs - t, 0.0, None)) * scale)
 
 
 def tolerance_flags(diameter_um, nominal_um, hd, tolerance_um: float, min_hd: float) -> np.ndarray:

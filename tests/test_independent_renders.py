@@ -51,18 +51,37 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
-def test_inverted_heights_give_no_half_size_imprints(tmp_path, capsys):
-    """A map whose heights are inverted (a channel of the other sign): the pits beside the pile-up lobes were
-    reported as two imprints of half the true diagonal (seed 1: 5.0 and 4.9 µm for 10.8). Their contact areas
-    are 1.6 times d^2 / 2 (imprints on five renderers: 0.76-1.22), so they are refused: one line, exit 1."""
+def _inverted_cli(tmp_path, capsys, seed):
+    """Seed ``seed`` of the ruled renderer with its heights negated, through the CLI: exit code and stderr lines."""
     from markcal.pipeline.cli import main
-    r = render_single_ruled(1, size_px=256)
+    r = render_single_ruled(seed, size_px=256)
     gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=(-r.height_nm).astype(np.float32)), str(tmp_path),
                                 "map")
     out = tmp_path / "out"
-    assert main(["indents", gsf, "--out", str(out), "--quiet"]) == 1
-    err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"markcal: error: {gsf}: no imprint found"] and not out.exists()
+    code = main(["indents", gsf, "--out", str(out), "--quiet"])
+    assert not out.exists()
+    return code, gsf, capsys.readouterr().err.strip().splitlines()
+
+
+@pytest.mark.parametrize("seed", [1, 5])
+def test_inverted_heights_are_refused(tmp_path, capsys, seed):
+    """A map whose heights are inverted (a channel of the other sign): the imprint stands up as a pyramid, and
+    the pits beside its pile-up lobes had been reported as one or two imprints of 3-10 µm (seed 1: 5.0 and 4.9 µm
+    for 10.8). What stands up is 3.3-25 times what lies down on four renderers' maps negated, 0.04-0.44 as drawn:
+    over 1, and when the map turned over holds an imprint, the map is refused, the reason named (maps of particles
+    stand up too: the real legacy Bruker map, 0.025 µm³ up against 0.0003 µm³ down, holds no imprint turned over)."""
+    code, gsf, err = _inverted_cli(tmp_path, capsys, seed)
+    assert code == 1 and len(err) == 1
+    assert err[0].startswith(f"markcal: error: {gsf}: the map holds 1 imprint standing up (") and "inverted" in err[0]
+
+
+def test_pits_beside_lobes_are_no_imprints(tmp_path, capsys, monkeypatch):
+    """The same pits with the volume check off: their contact areas are 1.6 times d^2 / 2 (imprints on five
+    renderers: 0.76-1.22), so they are refused as imprints: no imprint found."""
+    from markcal.stages import indent_select
+    monkeypatch.setattr(indent_select, "raised_and_sunk_um3", lambda z, noise, px: (0.0, 1.0))
+    code, gsf, err = _inverted_cli(tmp_path, capsys, 1)
+    assert code == 1 and err == [f"markcal: error: {gsf}: no imprint found"]
 
 
 def _assert_single_goals(tab, r):
