@@ -68,8 +68,9 @@ def test_inverted_heights_are_refused(tmp_path, capsys, seed):
     """A map whose heights are inverted (a channel of the other sign): the imprint stands up as a pyramid, and
     the pits beside its pile-up lobes had been reported as one or two imprints of 3-10 µm (seed 1: 5.0 and 4.9 µm
     for 10.8). What stands up is 3.3-25 times what lies down on four renderers' maps negated, 0.04-0.44 as drawn:
-    over 1, and when the map turned over holds an imprint, the map is refused, the reason named (maps of particles
-    stand up too: the real legacy Bruker map, 0.025 µm³ up against 0.0003 µm³ down, holds no imprint turned over)."""
+    over 1, and when the map turned over holds an imprint, the map is refused, the reason named (maps of
+    particles stand up too: the real legacy Bruker map, 0.025 µm³ up against 0.0003 µm³ down, holds no imprint
+    turned over)."""
     code, gsf, err = _inverted_cli(tmp_path, capsys, seed)
     assert code == 1 and len(err) == 1
     assert err[0].startswith(f"markcal: error: {gsf}: the map holds 1 imprint standing up (") and "inverted" in err[0]
