@@ -192,6 +192,13 @@ MUTANTS_INDENTS = [
         "new": "    if True:\n        return\n",
         "tests": ["tests/test_independent_renders.py::test_inverted_heights_are_refused"],
     },
+    {   # imprints drawn red against a size that was only inferred, nothing judged (session 14)
+        "name": "report-red-without-spec",
+        "file": "reports/indents_report.py",
+        "old": "    return [1] * n if f.nominal_inferred else f.table.get(\"in_tolerance\", [1] * n)\n",
+        "new": "    return f.table.get(\"in_tolerance\", [1] * n)\n",
+        "tests": ["tests/test_cli_indents_summary_line.py::test_report_without_spec_marks_nothing_out_of_tolerance"],
+    },
     {   # a collapsed mask falls back to the border ring in every round (session 13)
         "name": "level-collapse-to-ring",
         "file": "stages/indent_level.py",

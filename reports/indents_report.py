@@ -43,8 +43,7 @@ def _maps(files):
         else:
             ax.imshow(f.image, cmap="gray", extent=_extent(f))
         good_col = "cyan" if f.kind == "afm" else "#1565c0"      # cyan vanishes on a light micrograph
-        flags = f.table.get("in_tolerance", [1] * len(f.imprints))
-        for m, i, ok in zip(f.imprints, f.table["id"], flags):
+        for m, i, ok in zip(f.imprints, f.table["id"], _judged(f)):
             c = np.vstack([m.corners_um, m.corners_um[:1]])
             ax.plot(c[:, 0], c[:, 1], "-", color=good_col if ok else "#d9342b", lw=0.8 if ok else 1.4)
             ax.annotate(str(int(i)), (m.x_um, m.y_um), xytext=(0, 6), textcoords="offset points", ha="center",
@@ -54,7 +53,8 @@ def _maps(files):
         ax.set_ylabel("y (µm)")
         what = "levelled AFM height map" if f.kind == "afm" else "micrograph / illumination"
         parts.append(img(png_b64(fig), f.source, f"<code>{esc(os.path.basename(f.source))}</code>: {what} with "
-                         "the fitted outlines (corners from the facet planes) and imprint ids; red: out of tolerance."))
+                         "the fitted outlines (corners from the facet planes) and imprint ids"
+                         + ("." if f.nominal_inferred else "; red: out of tolerance.")))
     return "".join(parts)
 
 
@@ -142,9 +142,16 @@ def _positions(res):
                "minus nominal (paper Fig. 9); dashed: ±100 nm.")
 
 
+def _judged(f):
+    """Each imprint's tolerance flag as the report draws it: all good without an array spec, where the nominal
+    size is only inferred and nothing is judged (the verdict says so)."""
+    n = len(f.imprints)
+    return [1] * n if f.nominal_inferred else f.table.get("in_tolerance", [1] * n)
+
+
 def _gallery(files):
     items = [(f, m, i, ok) for f in files
-             for m, i, ok in zip(f.imprints, f.table["id"], f.table.get("in_tolerance", [1] * len(f.imprints)))
+             for m, i, ok in zip(f.imprints, f.table["id"], _judged(f))
              ][:MAX_GALLERY]
     if not items:
         return ""
@@ -171,8 +178,11 @@ def _gallery(files):
                 sp.set_edgecolor("#d9342b")
                 sp.set_linewidth(2)
     more = sum(len(f.imprints) for f in files) - len(items)
+    judged = not all(f.nominal_inferred for f in files)
     cap = ("Every imprint with its fitted outline (cyan: corners joined; green dashed: circle through the corners, "
-           "paper Fig. 6b); title: id and diameter. Red title and frame: out of tolerance (diameter or H/D).") + (f" {more} more not shown." if more > 0 else "")
+           "paper Fig. 6b); title: id and diameter."
+           + (" Red title and frame: out of tolerance (diameter or H/D)." if judged else "")
+           + (f" {more} more not shown." if more > 0 else ""))
     return img(png_b64(fig), "gallery", cap)
 
 
