@@ -153,7 +153,7 @@ MUTANTS_INDENTS = [
     {   # no square search when the outline finds nothing (BSE grain; session 13)
         "name": "micrograph-no-square-search",
         "file": "pipeline/flows/indents.py",
-        "old": "    if not imps and info.get(\"method\") == \"dots\" and spec is None and not squares_tried:\n",
+        "old": "    if not imps and not squares:\n",
         "new": "    if False:\n",
         "tests": ["tests/test_micrograph_independent.py::test_grain_spots_of_one_imprint_refused_by_their_sizes"],
     },

@@ -141,7 +141,7 @@ def _no_pyramid(m, pixel_um) -> bool:
 MIN_ONE_SIZE_SHARE = 0.75
 ONE_SIZE_TOLERANCE = 0.2
 #: dark spots found before the fit whose 90th/10th percentile radius is above this are grain or dust
-#: rather than an array (OM arrays with dust 1.03-1.34, BSE grain 1.76-2.2)
+#: rather than an array (OM arrays with dust 1.03-1.34; BSE grain 1.77-2.16 on whole images, 1.5-3.4 on crops)
 MIXED_SPOTS_RATIO = 1.5
 
 

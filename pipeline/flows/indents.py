@@ -244,11 +244,12 @@ def _micrograph_single(img: Image, say, info, squares: bool = False) -> list:
 
 
 def _micrograph_dots(img: Image, spec, opt, say, info, held) -> tuple:
-    """The dark dots of an OM array micrograph, fitted with one shared model; without a spec, when the spots
-    come in every size (grain or dust), a single imprint found by its four edges first.
+    """The dark dots of an OM array micrograph, fitted with one shared model.
 
-    Returns the imprints, the image to draw them on (divided by the illumination for dots) and whether the
-    four-edge search has run.
+    Without a spec, dark spots of every size (grain or dust) are first searched for a single imprint by its
+    four edges; fitted dots with no common size are refused, and the four-edge search is the last resort.
+    Returns the imprints, the image to draw them on (divided by the illumination for dots) and, when dots
+    were refused for their sizes, why (else "").
     """
     name, px = os.path.basename(img.source), img.pixel_um
     say(f"{name}: detecting dots in {img.shape[0]} x {img.shape[1]} micrograph")
@@ -259,13 +260,27 @@ def _micrograph_dots(img: Image, spec, opt, say, info, held) -> tuple:
         # the dots' shared fit is slow on hundreds of grain specks (10-70 s on a BSE image) and not meant for them
         say(f"{name}: {len(cands)} dark spots of every size (grain or dust)")
         if imps := _micrograph_single(img, say, info, squares=True):
-            return imps, img.data, True
+            return imps, img.data, ""
     say(f"{name}: fitting {len(cands)} candidates")
     # darkness, rim and PSF shared by the dots of one micrograph; dust the shared model
     # does not describe comes back as None
     psf = None if opt.objective_na is None else ind.airy_sigma_um(opt.objective_na, opt.wavelength_um)
-    info.update(noise_rel=sig, method="dots")
-    return ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf, held=held), img.data / bg, squares
+    info.update(noise_rel=sig)
+    imps = ind.measure_om_array(img.data, px, cands, sig, bg, psf_um=psf, held=held)
+    if spec is not None:
+        return imps, img.data / bg, ""
+    imps, spots = sel.accept_imprints(imps, px), ""
+    if not sel.one_size(imps):
+        # grain or dust: an array of one load has one size
+        d = np.array([m.d_um for m in imps])
+        spots = (f"{len(imps)} dark spots of {np.percentile(d, 10):.2g}-{np.percentile(d, 90):.2g} µm have no "
+                 "common size (grain or dust; an array spec measures them as imprints)")
+        say(f"{name}: {spots}")
+        imps = []
+    if not imps and not squares:
+        # the last resort: a single imprint whose outline strong grain contrast (BSE) cut into pieces
+        return _micrograph_single(img, say, info, squares=True), img.data, spots
+    return imps, img.data / bg, spots
 
 
 def _measure(img: Image, spec, opt, say, t0, held=None):
@@ -275,6 +290,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
     px = img.pixel_um
     info = {"pixel_um": px, "shape": list(img.shape), "format": img.meta.get("format"),
             "channel": img.meta.get("channel", ""), "pixel_source": img.meta.get("pixel_source")}
+    spots = ""                                      # why dark spots of a micrograph were refused
     if img.kind == "afm":
         if img.meta.get("blank_rows"):
             say(f"{name}: {img.meta['blank_rows']} constant scan lines (not scanned) left out")
@@ -293,20 +309,10 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         # one or more single imprints (at least MIN_DIAGONAL_PX across): corners from the four-facet fit
         imps, floor, image = single, None, img.data
     else:
-        (imps, image, squares_tried), floor = _micrograph_dots(img, spec, opt, say, info, held), None
+        imps, image, spots = _micrograph_dots(img, spec, opt, say, info, held)
+        floor = None
     window = None if spec is None else (0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um)
     imps = sel.accept_imprints(imps, px, floor, window)
-    spots = ""
-    if info.get("method") == "dots" and spec is None and not sel.one_size(imps):
-        # grain or dust: an array of one load has one size
-        d = np.array([m.d_um for m in imps])
-        spots = (f"{len(imps)} dark spots of {np.percentile(d, 10):.2g}-{np.percentile(d, 90):.2g} µm have no "
-                 "common size (grain or dust; an array spec measures them as imprints)")
-        say(f"{name}: {spots}")
-        imps = []
-    if not imps and info.get("method") == "dots" and spec is None and not squares_tried:
-        # the last resort: a single imprint whose outline strong grain contrast (BSE) cut into pieces
-        imps, image = _micrograph_single(img, say, info, squares=True), img.data
     if not imps:
         raise MarkcalError("no imprint found" + (f": {spots}" if spots else ""))
     n = len(imps)
