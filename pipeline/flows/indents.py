@@ -22,6 +22,7 @@ from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
 from markcal.stages.indent_micrograph import measure_micrograph
 from markcal.stages.indent_level import level_single
+from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, measure_single
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
@@ -295,10 +296,16 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         if img.meta.get("blank_rows"):
             say(f"{name}: {img.meta['blank_rows']} constant scan lines (not scanned) left out")
         say(f"{name}: levelling {img.shape[0]} x {img.shape[1]} AFM map")
-        lv = level_afm(img.data, px)
+        heights = img.data
+        if (flat := detect_line_flatten(heights)) is not None:
+            # flattened line by line before export, imprint and all: each line's fit taken from its far field
+            say(f"{name}: flattened line by line ({flat.describe()}): lines' fits taken again from the far field")
+            heights = unflatten_lines(heights, flat)
+            info["line_flatten"] = flat.describe()
+        lv = level_afm(heights, px)
         if lv.mask.mean() > 0.3:
             # an imprint filling much of the field: level from the far field only
-            lv = level_single(img.data, px)
+            lv = level_single(heights, px)
         _refuse_inverted(lv, px)
         say(f"{name}: detecting and fitting imprints")
         imps = _afm_imprints(lv, px)

@@ -1,0 +1,204 @@
+"""Scans flattened line by line before export, imprint and all: recognised, and each line's fit put back.
+
+A line flatten (NanoScope's *Flatten*, Gwyddion's *Align rows*) takes off every scan line's own fit to the
+whole line: its mean, median, or a polynomial of order 1-3. Through an imprint that fills much of the field
+the fit follows the imprint, so the far field of those lines stands hundreds of nm off, and its slope too
+for order 1. Such a map carries a signature no scan has by itself: the fits of all its lines are equal (to
+the file's rounding), up to a plane levelled afterwards (:func:`detect_line_flatten`). Where it is seen,
+:func:`unflatten_lines` fits each line's polynomial again, to that line's far field only, and takes it off:
+the map as it was before the flatten, up to a plane.
+"""
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from .level import noise_nm
+
+__all__ = ["LineFlatten", "detect_line_flatten", "unflatten_lines"]
+
+#: lines whose fits must agree: a few odd lines (blank, NaN) may differ
+AGREE_FRACTION = 0.95
+#: fits agree within this fraction of the pixel noise (a scan's own lines differ by noise / sqrt(width))
+AGREE_NOISE = 0.02
+
+
+@dataclass(frozen=True)
+class LineFlatten:
+    """A flatten found in a map.
+
+    Attributes
+    ----------
+    axis : int
+        0: each row was flattened (the fast scan axis along x); 1: each column.
+    order : int
+        Order of the polynomial taken off each line (0: an offset).
+    how : str
+        ``"poly"`` (least squares; order 0 is the mean) or ``"median"``.
+    """
+
+    axis: int
+    order: int
+    how: str
+
+    def describe(self) -> str:
+        line = "row" if self.axis == 0 else "column"
+        what = {0: "mean", 1: "line", 2: "quadratic", 3: "cubic"}[self.order] if self.how == "poly" else "median"
+        return f"each {line}'s {what} taken off"
+
+
+def _basis(n, order):
+    t = np.linspace(-1.0, 1.0, n)
+    return t[:, None] ** np.arange(order + 1)                 # (n, order + 1)
+
+
+def _line_fits(z, order, how):
+    """Each row's fit of ``z``: (rows, order + 1) coefficients; NaN for rows with missing pixels."""
+    full = np.isfinite(z).all(axis=1)
+    out = np.full((z.shape[0], order + 1), np.nan)
+    if how == "median":
+        out[full, 0] = np.median(z[full], axis=1)
+    else:
+        out[full] = np.linalg.lstsq(_basis(z.shape[1], order), z[full].T, rcond=None)[0].T
+    return out
+
+
+def _agree(coef, tol):
+    """Whether the rows' fits are equal within ``tol`` up to a trend along the lines' index (a plane)."""
+    ok = np.isfinite(coef[:, 0])
+    if ok.sum() < max(8, 0.5 * len(coef)):
+        return False
+    i = np.flatnonzero(ok).astype(float)
+    c = coef[ok]
+    trend = np.polyval(np.polyfit(i, c, 1), i[:, None]) if c.shape[1] == 1 else \
+        np.column_stack([np.polyval(np.polyfit(i, c[:, k], 1), i) for k in range(c.shape[1])])
+    dev = np.max(np.abs(c - trend), axis=1)
+    return bool(np.quantile(dev, AGREE_FRACTION) <= tol)
+
+
+def detect_line_flatten(z_nm: np.ndarray) -> LineFlatten | None:
+    """The line flatten a map went through, or None.
+
+    Every line's mean, median or polynomial fit equal (within 2 % of the pixel noise, on 95 % of the lines),
+    up to a plane: the signature of a flatten that left only what its fits cannot hold. A scan's own lines
+    differ by the noise over the square root of their length at least, and by tens of nm where they cross an
+    imprint.
+    """
+    z = np.asarray(z_nm, np.float64)
+    if z.ndim != 2 or min(z.shape) < 16:
+        return None
+    finite = np.isfinite(z)
+    if not finite.any():
+        return None
+    few = slice(None, None, max(1, z.shape[0] // 64))           # the noise from some 64 lines is enough
+    sigma = noise_nm(np.where(finite, z, 0.0)[few], finite[few])
+    scale = float(np.nanmax(z) - np.nanmin(z))
+    if not (np.isfinite(sigma) and scale > 0):
+        return None
+    # the file's rounding: float32 keeps 7 digits of the heights' range
+    tol = max(AGREE_NOISE * sigma, 1e-6 * scale)
+    for axis in (0, 1):
+        zz = z if axis == 0 else z.T
+        # any least-squares flatten leaves every line's mean alike: the higher orders are tried only then;
+        # a median flatten is tried on a few lines first (the whole map's medians cost more)
+        if _agree(_line_fits(zz, 0, "poly"), tol):
+            for order in (3, 2, 1):
+                if _agree(_line_fits(zz, order, "poly"), tol):
+                    return LineFlatten(axis=axis, order=order, how="poly")
+            return LineFlatten(axis=axis, order=0, how="poly")
+        few = zz[:: max(1, zz.shape[0] // 24)]
+        if _agree(_line_fits(few, 0, "median"), tol) and _agree(_line_fits(zz, 0, "median"), tol):
+            return LineFlatten(axis=axis, order=0, how="median")
+    return None
+
+
+def _robust_row(z, ok, b, start, scale, n_iter=8):
+    """Tukey-biweight fit of one line (``b``: its basis) over ``ok``, from ``start`` (None: least squares):
+    the coefficients and the inliers (within ``scale`` of the fit)."""
+    zb, bb = z[ok], b[ok]
+    c = np.linalg.lstsq(bb, zb, rcond=None)[0] if start is None else np.asarray(start, float)
+    for _ in range(n_iter):
+        r = (zb - bb @ c) / scale
+        w = np.where(np.abs(r) < 1.0, (1.0 - r * r) ** 2, 0.0)
+        if np.count_nonzero(w) < b.shape[1] + 2:
+            break
+        sw = np.sqrt(w)
+        c = np.linalg.lstsq(bb * sw[:, None], zb * sw, rcond=None)[0]
+    inl = np.zeros_like(ok)
+    inl[np.flatnonzero(ok)] = np.abs(zb - bb @ c) < scale
+    return c, inl
+
+
+def _common_profile(zz, valid, order, scale):
+    """What a flatten of ``order`` leaves in every line alike: the scan's slope (order 0) and bow (orders
+    0-1) along the lines, from the lines at the top and bottom of the map (nm per pixel along the lines)."""
+    deg = max(2, order)
+    ny, nx = zz.shape
+    b = _basis(nx, deg)
+    m = max(3, ny // 20)
+    high = [_robust_row(zz[r], valid[r], b, None, scale)[0][order + 1:]
+            for r in list(range(m)) + list(range(ny - m, ny)) if valid[r].sum() > 2 * (deg + 1)]
+    if not high:
+        return np.zeros(nx)
+    return b[:, order + 1:] @ np.median(np.array(high), axis=0)
+
+
+def _track_lines(y, valid, b, scale, min_px, rows):
+    """Each line's fit, line after line in the order ``rows``, each started from the last ones' (so that the
+    far field stays the line's level even where the imprint fills most of the line): (lines, order + 1)
+    coefficients, NaN where fewer than ``min_px`` pixels (for a slope: two on each half) lie within
+    ``scale`` of the fit, and the counts of those pixels."""
+    k = b.shape[1]
+    coef = np.full((y.shape[0], k), np.nan)
+    n_in = np.zeros(y.shape[0], int)
+    hist = []
+    half = y.shape[1] // 2
+    for r in rows:
+        ok = valid[r]
+        if ok.sum() < min_px:
+            continue
+        start = None if not hist else (hist[-1] if len(hist) < 2 else 2 * hist[-1] - hist[-2])
+        c, inl = _robust_row(y[r], ok, b, start, scale)
+        if inl.sum() >= min_px and (k == 1 or min(inl[:half].sum(), inl[half:].sum()) >= 2):
+            coef[r], n_in[r] = c, inl.sum()
+            hist.append(c)
+    return coef, n_in
+
+
+def _fill_rows(coef):
+    """Lines without a fit take their neighbours' (interpolated per coefficient, held at the ends)."""
+    ok = np.isfinite(coef[:, 0])
+    if not ok.any():
+        return np.zeros_like(coef)
+    i = np.arange(len(coef))
+    return np.column_stack([np.interp(i, i[ok], coef[ok, k]) for k in range(coef.shape[1])])
+
+
+def unflatten_lines(z_nm: np.ndarray, flat: LineFlatten) -> np.ndarray:
+    """The map before the line flatten ``flat`` (nm, up to a plane).
+
+    Each line's polynomial of the flatten's order is fitted again, robustly, to the line's far field and
+    taken off. What the flatten left alike in every line (the scan's slope and bow along the lines) is
+    taken from the lines at the map's top and bottom first. The far field is followed line by line, from
+    the top and from the bottom of the map, each line's fit started from the lines before it; of the two
+    passes the fit with more pixels on it is kept, and a line with too little far field (for a slope:
+    on both halves of it) takes its neighbours' fit.
+    """
+    z = np.asarray(z_nm, np.float64)
+    zz = z if flat.axis == 0 else z.T
+    valid = np.isfinite(zz)
+    zz = np.where(valid, zz, 0.0)
+    ny, nx = zz.shape
+    order = flat.order
+    b = _basis(nx, order)
+    sigma = noise_nm(zz, valid)
+    sigma = sigma if np.isfinite(sigma) and sigma > 0 else 1.0
+    scale = max(6.0 * sigma, 15.0)
+    min_px = max(3 * (order + 1), 6)
+    y = zz - _common_profile(zz, valid, order, scale)[None, :]
+    down, n_down = _track_lines(y, valid, b, scale, min_px, range(ny))
+    up, n_up = _track_lines(y, valid, b, scale, min_px, range(ny - 1, -1, -1))
+    coef = _fill_rows(np.where((n_up > n_down)[:, None], up, down))
+    u = np.where(valid, zz - coef @ b.T, np.nan)
+    return u if flat.axis == 0 else u.T
