@@ -211,7 +211,10 @@ def indents_report_html(res) -> str:
             ("pixel size", num(s["pixel_um"], "µm")),
             ("optics' resolution (Airy radius of the fitted PSF)", num(s.get("optics_resolution_um"), "µm")),
             ("AFM noise", num(s["noise_nm"], "nm")),
-            ("sample tilt removed", num(s["tilt_deg"], "°")), ("runtime", num(s["runtime_s"], "s"))]
+            ("sample tilt removed", num(s["tilt_deg"], "°")),
+            ("flattened line by line before export (each line's fit taken again from its far field)",
+             esc(s.get("line_flatten") or "")),
+            ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
     from .indent_single_report import single_section

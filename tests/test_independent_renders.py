@@ -64,7 +64,7 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how, axis):
     _assert_single_goals(res.indents, r)
     line = "row" if axis == 0 else "column"
     what = {"median": "median", 0: "mean", 1: "line"}[how]
-    assert res.files[0].info["line_flatten"] == f"each {line}'s {what} taken off"
+    assert res.files[0].info["line_flatten"] == res.summary["line_flatten"] == f"each {line}'s {what} taken off"
 
 
 @pytest.mark.parametrize("seed", [3, 5])
