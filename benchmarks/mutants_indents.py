@@ -178,6 +178,21 @@ MUTANTS_INDENTS = [
         "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
         "tests": ["tests/test_independent_renders.py::test_flattened_scan_cropped_afterwards"],
     },
+    {   # a map of non-square pixels read as square: every length along the long side shrunk (session 15)
+        "name": "io-non-square-read-as-square",
+        "file": "stages/image_io.py",
+        "old": "        data, px, meta = _square_pixels(data, *px, meta, path)\n",
+        "new": "        px = px[0]\n",
+        "tests": ["tests/test_afm_readers.py::test_non_square_pixels_resampled_to_square",
+                  "tests/test_independent_renders.py::test_single_ruled_imprint_scanned_with_every_second_line"],
+    },
+    {   # the resampled rows half a new pixel off the lines they come from (session 15)
+        "name": "io-resample-half-pixel-off",
+        "file": "stages/image_io.py",
+        "old": "    pos = np.clip(np.arange(n_new) * short / long_, 0.0, n_old - 1.0)\n",
+        "new": "    pos = np.clip((np.arange(n_new) + 0.5) * short / long_ - 0.5, 0.0, n_old - 1.0)\n",
+        "tests": ["tests/test_afm_readers.py::test_non_square_pixels_resampled_to_square"],
+    },
     {   # a line-flattened scan measured as it is, the lines' fits not taken again from the far field (session 15)
         "name": "flow-line-flatten-left-in",
         "file": "pipeline/flows/indents.py",

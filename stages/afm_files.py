@@ -182,12 +182,11 @@ def read_spm_file(path, fmt: str, channel: str | None = None):
     return data, px_um, meta
 
 
-def square_pixel_um(x_um, y_um, cols, rows):
-    """Pixel size (µm) from the field and the sample counts; refused when the pixels are not square."""
+def pixel_um_xy(x_um, y_um, cols, rows):
+    """Pixel size (µm) from the field and the sample counts: one number where the pixels are square (within
+    0.1 %), else (along x, along y); :func:`.image_io.read_image` resamples such a map to square pixels."""
     px, py = x_um / cols, y_um / rows
-    if abs(px - py) > 1e-3 * max(px, py):
-        raise MarkcalError(f"pixels are not square ({px * 1e3:g} x {py * 1e3:g} nm): not supported")
-    return px
+    return px if abs(px - py) <= 1e-3 * max(px, py) else (px, py)
 
 
 def _need(buf, offset, nbytes, what):
@@ -270,7 +269,7 @@ def _bruker_pixel(scan_size, cols, rows):
     scale = length_um(unit)
     if scale is None:
         raise MarkcalError(f"Bruker scan size '{scan_size}' has no length unit: give --pixel-size-um")
-    return square_pixel_um(x * scale, y * scale, cols, rows)
+    return pixel_um_xy(x * scale, y * scale, cols, rows)
 
 
 def _bruker_loader(buf, off, rows, cols, bpp, zscale, sens, name):
@@ -344,9 +343,10 @@ def _nid(buf, path):
             sx, sy = length_um(sec.get("Dim0Unit")), length_um(sec.get("Dim1Unit"))
             if sx is None or sy is None:
                 raise MarkcalError(f"NID lateral unit '{sec.get('Dim0Unit')}' is no length: give --pixel-size-um")
-            px_um = square_pixel_um(float(sec["Dim0Range"]) * sx, float(sec["Dim1Range"]) * sy, cols, rows)
+            px_um = pixel_um_xy(float(sec["Dim0Range"]) * sx, float(sec["Dim1Range"]) * sy, cols, rows)
         off += nbytes
-    return channels, px_um, {"scan_size_um": px_um * int(ini[order[0][0]]["Points"])}
+    px_x = px_um[0] if isinstance(px_um, tuple) else px_um
+    return channels, px_um, {"scan_size_um": px_x * int(ini[order[0][0]]["Points"])}
 
 
 def _nid_loader(buf, off, rows, cols, bits, sec, up):
@@ -378,7 +378,7 @@ def _jpk(buf, path):
         except KeyError:
             raise MarkcalError("JPK file has no grid size tags (0x8042/0x8043/0x8046/0x8047)") from None
         # lengths in m, as the JPK image spec defines them
-        px_um = square_pixel_um(xlen_m * 1e6, ylen_m * 1e6, cols, rows)
+        px_um = pixel_um_xy(xlen_m * 1e6, ylen_m * 1e6, cols, rows)
         channels = []
         for k, page in enumerate(tf.pages[1:], 1):
             tags = page.tags
@@ -388,7 +388,7 @@ def _jpk(buf, path):
             channels.append(Channel(str(tags[0x8050].value), direction, _jpk_loader(path, k)))
     finally:
         tf.close()
-    return channels, px_um, {"scan_size_um": px_um * cols}
+    return channels, px_um, {"scan_size_um": xlen_m * 1e6}
 
 
 def _jpk_loader(path, k):
@@ -443,7 +443,7 @@ def _wsxm(buf, path):
         sx, sy = length_um(xu), length_um(yu)
         if sx is None or sy is None:
             raise MarkcalError(f"WSxM X Amplitude '{xa}' has no length unit: give --pixel-size-um")
-        px_um = square_pixel_um(x * sx, y * sy, cols, rows)
+        px_um = pixel_um_xy(x * sx, y * sy, cols, rows)
     za = key("Z Amplitude")
     name = key("Acquisition channel") or "Topography"
 

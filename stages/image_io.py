@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, \
-    sniff_format, square_pixel_um
+    sniff_format, pixel_um_xy
 from .errors import MarkcalError
 from .io import existing_file
 
@@ -146,6 +146,9 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
             raise MarkcalError(f"--pixel-size-um must be positive, got {pixel_size_um}", path)
         px = float(pixel_size_um)
         meta = dict({k: v for k, v in meta.items() if k != "pixel_problem"}, pixel_source="override")
+    if isinstance(px, tuple):
+        data, px, meta = _square_pixels(data, *px, meta, path)
+        fin = np.isfinite(data)
     if px is None or not np.isfinite(px) or px <= 0:
         raise MarkcalError(f"{meta.get('pixel_problem', 'image has no pixel size')}: give --pixel-size-um", path)
     if kind is not None:
@@ -164,6 +167,40 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
             data[blank] = np.nan
             meta = dict(meta, blank_rows=int(blank.sum()))
     return Image(data=data, pixel_um=float(px), kind=guess, source=path, meta=meta)
+
+
+#: longest pixel side over the shortest that is still resampled to a map (beyond: lines, not a map)
+MAX_PIXEL_ASPECT = 8.0
+
+
+def _square_pixels(data, px_um, py_um, meta, path):
+    """A map of pixels px_um x py_um (along x, along y) resampled to square pixels of the shorter side.
+
+    Linear interpolation between the rows (or columns) of the longer side, which keeps every sample's
+    height range and leaves NaN where a neighbour is missing. Returns (data, pixel_um, meta).
+    """
+    if not (px_um > 0 and py_um > 0 and np.isfinite(px_um) and np.isfinite(py_um)):
+        raise MarkcalError(f"pixel size {px_um:g} x {py_um:g} µm is not positive", path)
+    if max(px_um, py_um) > MAX_PIXEL_ASPECT * min(px_um, py_um):
+        raise MarkcalError(f"pixels of {px_um * 1e3:g} x {py_um * 1e3:g} nm are more than {MAX_PIXEL_ASPECT:g} times "
+                           "longer one way: lines, not a map", path)
+    along_y = py_um > px_um
+    z = data if along_y else data.T
+    short, long_ = (px_um, py_um) if along_y else (py_um, px_um)
+    n_old = z.shape[0]
+    n_new = int(round(n_old * long_ / short))
+    # markcal places pixel (i, j) at (j, i) x its size: old row i at i long_, new row j at j short (the last
+    # new rows, past the old last line, hold it)
+    pos = np.clip(np.arange(n_new) * short / long_, 0.0, n_old - 1.0)
+    i0 = np.minimum(np.floor(pos).astype(int), n_old - 2) if n_old > 1 else np.zeros(n_new, int)
+    w = (pos - i0)[:, None]
+    out = z[i0] * (1.0 - w) + z[np.minimum(i0 + 1, n_old - 1)] * w
+    out = out if along_y else out.T
+    rows, cols = data.shape
+    note = (f"{cols} x {rows} samples of {px_um * 1e3:.4g} x {py_um * 1e3:.4g} nm resampled to "
+            f"{out.shape[1]} x {out.shape[0]} square pixels of {short * 1e3:.4g} nm (linear, along "
+            f"{'y' if along_y else 'x'})")
+    return out, float(short), dict(meta, resampled=note)
 
 
 # ----------------------------------------------------------------------------- TIFF
@@ -362,7 +399,7 @@ def _read_gsf(path, channel=None):
     elif "XReal" in h:
         px = float(h["XReal"]) * xy / data.shape[1]
         if "YReal" in h:
-            px = square_pixel_um(float(h["XReal"]) * xy, float(h["YReal"]) * xy, data.shape[1], data.shape[0])
+            px = pixel_um_xy(float(h["XReal"]) * xy, float(h["YReal"]) * xy, data.shape[1], data.shape[0])
     return data.astype(np.float64) * height_nm_per_unit(zu), px, "afm", meta
 
 
@@ -400,7 +437,7 @@ def _read_gwy(path, channel=None):
     elif f.xreal:
         px = float(f.xreal) * length_um(xy) / data.shape[1]
         if f.get("yreal"):
-            px = square_pixel_um(float(f.xreal) * length_um(xy), float(f["yreal"]) * length_um(xy),
+            px = pixel_um_xy(float(f.xreal) * length_um(xy), float(f["yreal"]) * length_um(xy),
                                  data.shape[1], data.shape[0])
     return data * height_nm_per_unit(zu), px, "afm", meta
 
@@ -456,7 +493,7 @@ def _read_ibw(path, channel=None):
         px = sfa * length_um(xunit)
         sfa_y = float(hdr["sfA"][1])
         if sfa_y > 0:                     # a scan of fewer lines than points (or the other way) on the field
-            px = square_pixel_um(px * img.shape[1], sfa_y * length_um(xunit) * img.shape[0],
+            px = pixel_um_xy(px * img.shape[1], sfa_y * length_um(xunit) * img.shape[0],
                                  img.shape[1], img.shape[0])
     elif "ScanSize" in note:
         px = float(note["ScanSize"]) * 1e6 / img.shape[1]

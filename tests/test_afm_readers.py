@@ -330,30 +330,39 @@ def test_igor2_and_afmreader_agree_on_asylum_ibw(tmp_path):
         read_image(path, channel="Deflection")
 
 
-def test_non_square_pixels_refused_not_read_as_square(tmp_path, capsys):
-    """A scan of 64 points x 32 lines on a square field (y pixel twice the x pixel): read as square pixels,
-    every length along y would be half its size. IBW (x and y deltas, sfA) and GSF (XReal/YReal) are
-    refused with one line; the same files with square pixels read."""
+def test_non_square_pixels_resampled_to_square(tmp_path, capsys):
+    """A scan of 64 points x 32 lines on a square field (y pixel twice the x pixel), as IBW (x and y deltas,
+    sfA) and GSF (XReal/YReal). Read as square pixels, every length along y would be half its size (session
+    14 refused such files). Now resampled to 64 x 64 pixels of 100 nm, linear between the lines: the pit on
+    lines 10-19 (y 2.0-3.8 µm, line 0 at y = 0) has its full 50 nm on rows 20-38 and half on rows 19 and 39
+    (half a line from its edge lines), nothing beyond. Pixels ten times longer one way are lines, not a map: refused
+    with one line."""
     from markcal.fixtures.indent_maps import ibw_bytes
     from markcal.stages.image_io import gsf_bytes
-    z = np.zeros((32, 64))
-    z[10:20, 20:40] = -5e-8
+    z = np.tile(np.arange(64) * 1e-10, (32, 1))                     # a slope of 0.1 nm per column
+    z[10:20, 20:40] -= 5e-8
     cases = {"a.ibw": ibw_bytes({"HeightTrace": z}, (1e-7, 2e-7)),
              "a.gsf": gsf_bytes(z, 64e-7, 64e-7)}
+    expect = np.full(64, 3.0)
+    expect[20:39] -= 50.0
+    expect[[19, 39]] -= 25.0
     for name, blob in cases.items():
         path = str(tmp_path / name)
         with open(path, "wb") as fh:
             fh.write(blob)
-        with pytest.raises(MarkcalError, match=r"pixels are not square \(100 x 200 nm\)"):
-            read_image(path)
-        out = str(tmp_path / ("out_" + name))
-        assert main(["indents", path, "--out", out, "--quiet"]) == 1
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith("markcal: error: ") and name in err[0]
-        assert not os.path.exists(os.path.join(out, "summary.json"))
-    with open(tmp_path / "sq.ibw", "wb") as fh:
-        fh.write(ibw_bytes({"HeightTrace": z}, 1e-7))
-    assert read_image(str(tmp_path / "sq.ibw")).pixel_um == pytest.approx(0.1)
+        img = read_image(path)
+        assert img.pixel_um == pytest.approx(0.1) and img.data.shape == (64, 64)
+        np.testing.assert_allclose(img.data[:, 30], expect, atol=1e-4)
+        np.testing.assert_allclose(img.data[:, 10], 1.0, atol=1e-4)
+        assert "64 x 32 samples of 100 x 200 nm resampled to 64 x 64 square pixels of 100 nm" in img.meta["resampled"]
+    path = str(tmp_path / "lines.ibw")
+    with open(path, "wb") as fh:
+        fh.write(ibw_bytes({"HeightTrace": z}, (1e-7, 1e-6)))
+    out = str(tmp_path / "out_lines")
+    assert main(["indents", path, "--out", out, "--quiet"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"markcal: error: {path}: pixels of 100 x 1000 nm are more than 8")
+    assert not os.path.exists(os.path.join(out, "summary.json"))
 
 
 def test_zeiss_smartsem_pixel_size_tag(tmp_path):

@@ -292,6 +292,9 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
     info = {"pixel_um": px, "shape": list(img.shape), "format": img.meta.get("format"),
             "channel": img.meta.get("channel", ""), "pixel_source": img.meta.get("pixel_source")}
     spots = ""                                      # why dark spots of a micrograph were refused
+    if img.meta.get("resampled"):
+        say(f"{name}: {img.meta['resampled']}")
+        info["resampled"] = img.meta["resampled"]
     if img.kind == "afm":
         if img.meta.get("blank_rows"):
             say(f"{name}: {img.meta['blank_rows']} constant scan lines (not scanned) left out")
