@@ -14,6 +14,7 @@ import warnings
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from .level import noise_nm
 
 __all__ = ["LineFlatten", "detect_line_flatten", "unflatten_lines"]
@@ -115,19 +116,57 @@ def detect_line_flatten(z_nm: np.ndarray) -> LineFlatten | None:
 
 def _robust_row(z, ok, b, start, scale, n_iter=8):
     """Tukey-biweight fit of one line (``b``: its basis) over ``ok``, from ``start`` (None: least squares):
-    the coefficients and the inliers (within ``scale`` of the fit)."""
-    zb, bb = z[ok], b[ok]
-    c = np.linalg.lstsq(bb, zb, rcond=None)[0] if start is None else np.asarray(start, float)
+    the coefficients and the inliers (within ``scale`` of the fit) (:func:`_tukey_fit`)."""
+    c0 = np.zeros(b.shape[1]) if start is None else np.asarray(start, np.float64)
+    return _tukey_fit(np.asarray(z, np.float64), ok, b, c0, start is None, float(scale), n_iter)
+
+
+@njit(cache=True)
+def _tukey_fit(z, ok, b, c, from_lsq, scale, n_iter):
+    """Weighted normal equations of the line's few coefficients, re-weighted ``n_iter`` times (Tukey's
+    biweight at ``scale``) from ``c``, or (``from_lsq``) from the plain least-squares fit over ``ok``."""
+    n, k = b.shape
+    w = np.where(ok, 1.0, 0.0)
+    c = _weighted_solve(z, b, w) if from_lsq else c.copy()
     for _ in range(n_iter):
-        r = (zb - bb @ c) / scale
-        w = np.where(np.abs(r) < 1.0, (1.0 - r * r) ** 2, 0.0)
-        if np.count_nonzero(w) < b.shape[1] + 2:
+        cnt = 0
+        for i in range(n):
+            w[i] = 0.0
+            if ok[i]:
+                r = (z[i] - _dot(b, i, c)) / scale
+                if abs(r) < 1.0:
+                    w[i] = (1.0 - r * r) ** 2
+                    cnt += 1
+        if cnt < k + 2:
             break
-        sw = np.sqrt(w)
-        c = np.linalg.lstsq(bb * sw[:, None], zb * sw, rcond=None)[0]
-    inl = np.zeros_like(ok)
-    inl[np.flatnonzero(ok)] = np.abs(zb - bb @ c) < scale
+        c = _weighted_solve(z, b, w)
+    inl = np.zeros(n, np.bool_)
+    for i in range(n):
+        inl[i] = ok[i] and abs(z[i] - _dot(b, i, c)) < scale
     return c, inl
+
+
+@njit(cache=True)
+def _dot(b, i, c):
+    s = 0.0
+    for j in range(b.shape[1]):
+        s += b[i, j] * c[j]
+    return s
+
+
+@njit(cache=True)
+def _weighted_solve(z, b, w):
+    """Least squares of ``z`` on the columns of ``b`` with weights ``w`` (normal equations, a few columns)."""
+    n, k = b.shape
+    ata = np.zeros((k, k))
+    atz = np.zeros(k)
+    for i in range(n):
+        if w[i] > 0.0:
+            for j in range(k):
+                atz[j] += w[i] * b[i, j] * z[i]
+                for m in range(k):
+                    ata[j, m] += w[i] * b[i, j] * b[i, m]
+    return np.linalg.solve(ata + 1e-12 * np.eye(k), atz)
 
 
 def _common_profile(zz, valid, order, scale):
