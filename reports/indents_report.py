@@ -213,7 +213,7 @@ def indents_report_html(res) -> str:
             ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")),
             ("flattened line by line before export (each line's fit taken again from its far field)",
-             esc(s.get("line_flatten") or "")),
+             esc(s["line_flatten"]) if s.get("line_flatten", "none") != "none" else ""),
             ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))

@@ -420,7 +420,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "nominal_inferred": any(f.nominal_inferred for f in files),
         "pixel_um": files[0].pixel_um,
         "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
-        "line_flatten": files[0].info.get("line_flatten"),
+        "line_flatten": files[0].info.get("line_flatten", "none"),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
