@@ -178,6 +178,21 @@ MUTANTS_INDENTS = [
         "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
         "tests": ["tests/test_independent_renders.py::test_flattened_scan_cropped_afterwards"],
     },
+    {   # missing scan lines filled with the mean of their neighbours: the floor of a V is missed (session 15)
+        "name": "single-line-gap-mean-fill",
+        "file": "stages/indent_single.py",
+        "old": "            out[t, c] = np.maximum(from_above, from_below)\n",
+        "new": "            out[t, c] = 0.5 * (col[a - 1] + col[b + 1])\n",
+        "tests": ["tests/test_indent_single.py::test_missing_lines_filled_along_the_columns",
+                  "tests/test_independent_renders.py::test_scan_lines_left_out_through_the_floor"],
+    },
+    {   # missing scan lines not filled: set to the original level before smoothing (session 15)
+        "name": "single-line-gaps-left",
+        "file": "stages/indent_single.py",
+        "old": "    zz = _fill_line_gaps(np.asarray(z_nm[r0:r1, c0:c1], float))\n",
+        "new": "    zz = np.asarray(z_nm[r0:r1, c0:c1], float)\n",
+        "tests": ["tests/test_independent_renders.py::test_scan_lines_left_out_through_the_floor"],
+    },
     {   # a map of non-square pixels read as square: every length along the long side shrunk (session 15)
         "name": "io-non-square-read-as-square",
         "file": "stages/image_io.py",

@@ -245,3 +245,23 @@ def test_interrupted_scan_blank_lines_left_out(tmp_path):
     assert abs(tab["d_um"][0] - t["d_um"]) <= max(0.005 * t["d_um"], r.pixel_um)
     assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.01
     assert any(f"{z.shape[0] - last} constant scan lines" in m for m in msgs)
+
+
+def test_missing_lines_filled_along_the_columns():
+    """A V down the columns (the floor between two facets, 30 nm per line) and a plane, with one and two
+    lines missing: filled exactly (the higher continuation); three lines, or a line next to the border,
+    stay missing."""
+    from markcal.stages.indent_single import _fill_line_gaps
+    rows = np.arange(20, dtype=float)[:, None]
+    v = 30.0 * np.abs(rows - 9.0) + 0.5 * np.arange(6)[None, :] - 300.0
+    plane = 2.0 * rows + 0.3 * np.arange(6)[None, :]
+    for truth in (v, plane):
+        for gap in ([9], [9, 10], [8, 9]):
+            z = truth.copy()
+            z[gap] = np.nan
+            np.testing.assert_allclose(_fill_line_gaps(z), truth, atol=1e-9)
+    z = v.copy()
+    z[[8, 9, 10]] = np.nan
+    z[1] = np.nan
+    out = _fill_line_gaps(z)
+    assert np.isnan(out[[1, 8, 9, 10]]).all()
