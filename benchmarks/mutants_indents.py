@@ -178,6 +178,20 @@ MUTANTS_INDENTS = [
         "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
         "tests": ["tests/test_independent_renders.py::test_flattened_scan_cropped_afterwards"],
     },
+    {   # a clipped floor taken for a flat-bottomed pit (a grating's): the imprint refused (session 15)
+        "name": "select-clipped-floor-refused",
+        "file": "stages/indent_select.py",
+        "old": "                                          or (m.floor_share > MAX_FLOOR_SHARE and not floor_clipped)\n",
+        "new": "                                          or m.floor_share > MAX_FLOOR_SHARE\n",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range"],
+    },
+    {   # any map's lowest pixel taken for a clipped floor (session 15)
+        "name": "select-clipped-floor-any-minimum",
+        "file": "stages/indent_select.py",
+        "old": "MIN_CLIPPED_PX = 8\n",
+        "new": "MIN_CLIPPED_PX = 1\n",
+        "tests": ["tests/test_indent_single.py::test_clipped_floor_only_where_heights_are_equal"],
+    },
     {   # missing scan lines filled with the mean of their neighbours: the floor of a V is missed (session 15)
         "name": "single-line-gap-mean-fill",
         "file": "stages/indent_single.py",

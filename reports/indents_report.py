@@ -214,9 +214,18 @@ def indents_report_html(res) -> str:
             ("sample tilt removed", num(s["tilt_deg"], "°")),
             ("flattened line by line before export (each line's fit taken again from its far field)",
              esc(s["line_flatten"]) if s.get("line_flatten", "none") != "none" else ""),
+            ("floor clipped (the scanner's Z range): depths are lower bounds",
+             f'{s["n_files_floor_clipped"]} file(s)' if s.get("n_files_floor_clipped") else ""),
             ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
+    clipped = [f for f in res.files if f.info.get("floor_clipped_px")]
+    if clipped:
+        names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ({f.info['floor_clipped_px']} px)"
+                          for f in clipped)
+        parts.append(f'<div class="warn"><b>Floor clipped:</b> in {names} that many pixels hold the map\'s lowest '
+                     "height exactly: the scanner reached the end of its Z range, so the floor is cut flat and the "
+                     "depths (and H/D) are lower bounds. The diagonals and areas do not depend on it.</div>")
     from .indent_single_report import single_section
     parts.append(single_section(res.files))
     if s["nominal_inferred"]:

@@ -89,8 +89,27 @@ MIN_IMPRINT_HD = 0.02       # depth / diameter under which a pit is not an impri
 MAX_FLOOR_SHARE = 0.085     # share of a pit deeper than 80 % of its depth above which it is flat-bottomed
 
 
+#: pixels sharing a map's lowest height exactly, from which its floor is taken as clipped (the Z range's end)
+MIN_CLIPPED_PX = 8
+
+
+def clipped_floor_px(z_nm: np.ndarray) -> int:
+    """Pixels holding exactly the map's lowest height when there are ``MIN_CLIPPED_PX`` or more, else 0.
+
+    A scanner at the end of its Z range reads one value wherever the surface lies deeper: the floor of an
+    imprint deeper than the range becomes a plateau of equal heights. A scanned floor has noise (even a
+    16-bit file's rounding leaves a pyramid's blunted floor one or two pixels within a step).
+    """
+    z = np.asarray(z_nm)
+    fin = np.isfinite(z)
+    if not fin.any():
+        return 0
+    n = int(np.count_nonzero(z[fin] == z[fin].min()))
+    return n if n >= MIN_CLIPPED_PX else 0
+
+
 def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,
-                    size_window_um: tuple | None = None) -> list:
+                    size_window_um: tuple | None = None, floor_clipped: bool = False) -> list:
     """Imprints that count: measured, deeper than ``min_depth_nm`` (AFM), wider than 3 px,
     inside ``size_window_um`` (lo, hi) of the diameter when given, duplicates removed.
 
@@ -102,14 +121,16 @@ def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = No
     it on every renderer (blunted, rounded, recovered), the square pits of a calibration grating 9.5-20 %;
     nor a pit under ``LARGE_IMPRINT_PX`` that the four-facet model could not fit (the one grating pit of
     4.5 %); nor a pit whose contact area is far from that of the quadrilateral between its corners
-    (``AREA_RATIO_RANGE``).
+    (``AREA_RATIO_RANGE``). A ``floor_clipped`` map (:func:`clipped_floor_px`) is flat at its floor
+    because the scanner could not go deeper: the flat-bottom test does not apply there.
     """
     out = [m for m in imps if m is not None and m.diameter_um > 3 * pixel_um]
     if min_depth_nm is not None:
         out = [m for m in out if m.depth_nm > min_depth_nm]
         if size_window_um is None:
             out = [m for m in out if not (m.depth_nm < MIN_IMPRINT_HD * m.diameter_um * 1e3
-                                          or m.floor_share > MAX_FLOOR_SHARE or _no_pyramid(m, pixel_um)
+                                          or (m.floor_share > MAX_FLOOR_SHARE and not floor_clipped)
+                                          or _no_pyramid(m, pixel_um)
                                           or _no_quadrilateral(m))]
     if size_window_um is not None:
         lo, hi = size_window_um

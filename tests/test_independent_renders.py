@@ -128,6 +128,35 @@ def test_scan_lines_left_out_through_the_floor(tmp_path, seed):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
+@pytest.mark.parametrize("seed", [1, 12])
+def test_floor_clipped_by_the_z_range(tmp_path, seed):
+    """The scanner's Z range ends just above the floor: the lowest 0.2 % of the map read one value. The flat
+    floor made the pit a flat-bottomed one (a grating's), refused: "no imprint found" on seeds 1 and 12
+    (their deepest fifth 9-10 % of the pit). Equal lowest heights on 8 pixels or more now mark the floor as
+    clipped: the imprint is measured, the file flagged, the depth a lower bound. Tolerances: the
+    single-imprint goals for d, area and corners; the depth at most the depth of the cut plus 1 %."""
+    r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
+    z = r.height_nm.astype(float)
+    cut = np.percentile(z, 0.2)
+    z = np.maximum(z, cut)
+    gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=z.astype(np.float32)), str(tmp_path), "map")
+    res = run_indents([gsf], None, IndentsOptions())
+    assert res.files[0].info["floor_clipped_px"] >= 8 and res.summary["n_files_floor_clipped"] == 1
+    tab, t, px = res.indents, r.truth, r.pixel_um
+    assert len(tab["x_um"]) == 1
+    assert abs(tab["d_um"][0] - t["d_mean_um"]) <= max(0.005 * t["d_mean_um"], px)
+    assert abs(tab["area_um2"][0] / t["area_below_original_level_um2"] - 1) <= 0.01
+    assert tab["depth_nm"][0] < t["depth_nm"]
+    mc = _corners_um(tab, 0)
+    tc = np.array([[c["x_um"], c["y_um"]] for c in t["corners"]])
+    assert min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) <= 1.5 * px
+    if seed == 1:
+        from markcal.pipeline.cli import main
+        assert main(["indents", gsf, "--out", str(tmp_path / "out"), "--quiet"]) == 0
+        html = (tmp_path / "out" / "report.html").read_text()
+        assert "Floor clipped:" in html and "lower bounds" in html
+
+
 def _inverted_cli(tmp_path, capsys, seed):
     """Seed ``seed`` of the ruled renderer with its heights negated, through the CLI: exit code and stderr lines."""
     from markcal.pipeline.cli import main

@@ -305,6 +305,11 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
             say(f"{name}: flattened line by line ({flat.describe()}): lines' fits taken again from the far field")
             heights = unflatten_lines(heights, flat)
             info["line_flatten"] = flat.describe()
+        if n_clip := sel.clipped_floor_px(img.data):
+            # the Z range's end: the floor is cut flat, the depth a lower bound
+            say(f"{name}: {n_clip} pixels hold the map's lowest height exactly: its floor is clipped (the scanner's "
+                "Z range), depths are lower bounds")
+        info["floor_clipped_px"] = n_clip
         lv = level_afm(heights, px)
         if lv.mask.mean() > 0.3:
             # an imprint filling much of the field: level from the far field only
@@ -322,7 +327,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         imps, image, spots = _micrograph_dots(img, spec, opt, say, info, held)
         floor = None
     window = None if spec is None else (0.4 * spec.nominal_diameter_um, 2.0 * spec.nominal_diameter_um)
-    imps = sel.accept_imprints(imps, px, floor, window)
+    imps = sel.accept_imprints(imps, px, floor, window, floor_clipped=bool(info.get("floor_clipped_px")))
     if not imps:
         raise MarkcalError("no imprint found" + (f": {spots}" if spots else ""))
     n = len(imps)
@@ -421,6 +426,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "pixel_um": files[0].pixel_um,
         "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
         "line_flatten": files[0].info.get("line_flatten", "none"),
+        "n_files_floor_clipped": int(sum(bool(f.info.get("floor_clipped_px")) for f in files)),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
