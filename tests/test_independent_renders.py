@@ -19,6 +19,7 @@ from markcal.fixtures.indent_om_aperture import render_om_aperture, write_om_ape
 from markcal.fixtures.indent_single_ruled import render_single_ruled, write_single_ruled
 from markcal.pipeline.config import read_array_spec
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
+from test_indent_unflatten import _flatten
 
 
 def _corners_um(tab, k):
@@ -37,18 +38,6 @@ def test_single_ruled_imprint_against_truth(tmp_path, seed, margin):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions(load_mN=500.0)).indents, r)
 
 
-def _line_flattened(z, how, axis=0):
-    """``z`` with each row's (``axis`` 1: each column's) fit taken off, as an instrument's line flatten does:
-    ``how`` "median", or the polynomial order (0: the mean)."""
-    z = np.asarray(z, float) if axis == 0 else np.asarray(z, float).T
-    if how == "median":
-        out = z - np.median(z, axis=1)[:, None]
-    else:
-        b = np.linspace(-1.0, 1.0, z.shape[1])[:, None] ** np.arange(how + 1)
-        out = z - (b @ np.linalg.lstsq(b, z.T, rcond=None)[0]).T
-    return out if axis == 0 else out.T
-
-
 @pytest.mark.parametrize("seed,how,axis", [(3, 0, 0), (5, "median", 0), (8, 1, 0), (11, 1, 0), (6, 1, 1)])
 def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how, axis):
     """A scan flattened line by line before export, imprint and all (each row's mean, median or line taken
@@ -58,7 +47,7 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how, axis):
     signature (every line's fit alike) and each line's fit is taken again from its far field, followed line
     by line (``stages/indent_unflatten``). Tolerances: the single-imprint goals."""
     r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
-    z = _line_flattened(r.height_nm, how, axis)
+    z = _flatten(r.height_nm, how, axis)
     gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=z.astype(np.float32)), str(tmp_path), "map")
     res = run_indents([gsf], None, IndentsOptions())
     _assert_single_goals(res.indents, r)
@@ -74,7 +63,7 @@ def test_flattened_scan_cropped_afterwards(tmp_path, seed):
     round works under the side strips' offsets (session 14: the first surface fitted through them bent 240 nm
     on seed 3 and masked 97 % of the field). Tolerances: the single-imprint goals."""
     r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
-    z = _line_flattened(r.height_nm, 0)
+    z = _flatten(r.height_nm, 0)
     right = np.mean([c["col"] for c in r.truth["corners"]]) > 128
     z = z[:, 24:] if right else z[:, :-24]
     shift = 24 * r.pixel_um if right else 0.0
