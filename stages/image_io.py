@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, read_spm_file, \
-    sniff_format, pixel_um_xy
+from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, pixel_um_xy, \
+    read_spm_file, sniff_format
 from .errors import MarkcalError
 from .io import existing_file
 
@@ -98,8 +98,9 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
     MarkcalError
         Missing or unreadable file, not an image, unknown channel (the message
         lists the file's channels), height unit unknown, no pixel size or a
-        lateral size without a unit, all-NaN or constant data. The message
-        names the file.
+        lateral size without a unit, pixels more than ``MAX_PIXEL_ASPECT`` times
+        longer one way, all-NaN or constant data. The message names the file.
+        Pixels that are not square are resampled to square ones (``meta["resampled"]``).
     """
     path, ext = existing_file(path)
     with open(path, "rb") as fh:
@@ -438,7 +439,7 @@ def _read_gwy(path, channel=None):
         px = float(f.xreal) * length_um(xy) / data.shape[1]
         if f.get("yreal"):
             px = pixel_um_xy(float(f.xreal) * length_um(xy), float(f["yreal"]) * length_um(xy),
-                                 data.shape[1], data.shape[0])
+                             data.shape[1], data.shape[0])
     return data * height_nm_per_unit(zu), px, "afm", meta
 
 
@@ -494,7 +495,7 @@ def _read_ibw(path, channel=None):
         sfa_y = float(hdr["sfA"][1])
         if sfa_y > 0:                     # a scan of fewer lines than points (or the other way) on the field
             px = pixel_um_xy(px * img.shape[1], sfa_y * length_um(xunit) * img.shape[0],
-                                 img.shape[1], img.shape[0])
+                             img.shape[1], img.shape[0])
     elif "ScanSize" in note:
         px = float(note["ScanSize"]) * 1e6 / img.shape[1]
     fin = img[np.isfinite(img)]

@@ -22,8 +22,8 @@ from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
 from markcal.stages.indent_micrograph import measure_micrograph
 from markcal.stages.indent_level import level_single
-from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, measure_single
+from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
