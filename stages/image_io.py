@@ -190,6 +190,7 @@ def _square_pixels(data, px_um, py_um, meta, path):
     short, long_ = (px_um, py_um) if along_y else (py_um, px_um)
     n_old = z.shape[0]
     n_new = int(round(n_old * long_ / short))
+    check_image_size((n_new, z.shape[1]), path)             # the resampled map must fit in memory too
     # markcal places pixel (i, j) at (j, i) x its size: old row i at i long_, new row j at j short (the last
     # new rows, past the old last line, hold it)
     pos = np.clip(np.arange(n_new) * short / long_, 0.0, n_old - 1.0)

@@ -405,3 +405,16 @@ def test_real_maps_keep_every_line_and_hold_no_imprint(rel, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("markcal: error: ") and err[0].endswith("no imprint found")
     assert not os.path.exists(os.path.join(out, "summary.json"))
+
+
+def test_resampled_map_must_fit_too(tmp_path, monkeypatch):
+    """The size limit holds for the map resampled to square pixels as for the file's own: 64 points x 32 lines
+    (2048 values) on a square field becomes 64 x 64; with a limit of 3000 values the file is refused."""
+    from markcal.stages import image_io
+    from markcal.stages.image_io import gsf_bytes
+    monkeypatch.setattr(image_io, "MAX_IMAGE_PIXELS", 3000)
+    path = str(tmp_path / "a.gsf")
+    with open(path, "wb") as fh:
+        fh.write(gsf_bytes(np.tile(np.arange(64) * 1e-10, (32, 1)), 64e-7, 64e-7))
+    with pytest.raises(MarkcalError, match=r"64 x 64 = 4,096 values"):
+        read_image(path)
