@@ -57,11 +57,14 @@ def _basis(n, order):
 def _line_fits(z, order, how):
     """Each row's fit of ``z``: (rows, order + 1) coefficients; NaN for rows with missing pixels."""
     full = np.isfinite(z).all(axis=1)
+    rows = z if full.all() else z[full]
     out = np.full((z.shape[0], order + 1), np.nan)
     if how == "median":
-        out[full, 0] = np.median(z[full], axis=1)
+        out[full, 0] = np.median(rows, axis=1)
+    elif order == 0:
+        out[full, 0] = rows.mean(axis=1)                  # the least-squares constant
     else:
-        out[full] = np.linalg.lstsq(_basis(z.shape[1], order), z[full].T, rcond=None)[0].T
+        out[full] = np.linalg.lstsq(_basis(z.shape[1], order), rows.T, rcond=None)[0].T
     return out
 
 
