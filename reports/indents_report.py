@@ -214,6 +214,7 @@ def indents_report_html(res) -> str:
             ("sample tilt removed", num(s["tilt_deg"], "°")),
             ("flattened line by line before export (each line's fit taken again from its far field)",
              esc(s["line_flatten"]) if s.get("line_flatten", "none") != "none" else ""),
+            ("non-square pixels resampled", esc(s["resampled"]) if s.get("resampled", "none") != "none" else ""),
             ("floor clipped (the scanner's Z range): depths are lower bounds",
              f'{s["n_files_floor_clipped"]} file(s)' if s.get("n_files_floor_clipped") else ""),
             ("runtime", num(s["runtime_s"], "s"))]

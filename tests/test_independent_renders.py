@@ -90,7 +90,8 @@ def test_single_ruled_imprint_scanned_with_every_second_line(tmp_path, seed):
     with open(path, "wb") as fh:
         fh.write(gsf_bytes(r.height_nm[::2] * 1e-9, field_m, field_m))
     res = run_indents([path], None, IndentsOptions())
-    assert res.files[0].info["resampled"].startswith("256 x 128 samples of")
+    assert res.files[0].info["resampled"] == res.summary["resampled"]
+    assert res.summary["resampled"].startswith("256 x 128 samples of")
     tab, t = res.indents, r.truth
     line = 2 * r.pixel_um
     assert len(tab["x_um"]) == 1

@@ -426,6 +426,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "pixel_um": files[0].pixel_um,
         "noise_nm": files[0].info.get("noise_nm"), "tilt_deg": files[0].info.get("tilt_deg"),
         "line_flatten": files[0].info.get("line_flatten", "none"),
+        "resampled": files[0].info.get("resampled", "none"),
         "n_files_floor_clipped": int(sum(bool(f.info.get("floor_clipped_px")) for f in files)),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
