@@ -418,3 +418,35 @@ def test_resampled_map_must_fit_too(tmp_path, monkeypatch):
         fh.write(gsf_bytes(np.tile(np.arange(64) * 1e-10, (32, 1)), 64e-7, 64e-7))
     with pytest.raises(MarkcalError, match=r"64 x 64 = 4,096 values"):
         read_image(path)
+
+
+def test_real_bruker_map_line_flatten_and_clipping_against_references():
+    """The real NanoScope file as stored is no line-flattened map: its raw counts (jmarini/nanoscope's
+    ``reference_raw.csv``) have lines whose means differ, so neither the reference's values nor markcal's
+    read of them carry the signature. That library's own export flattened by line (``reference_converted.csv``,
+    each line's least-squares line taken off, heights to 3 digits) does: it is recognised as flattened along
+    the rows. (Its order reads as 0: the 3-digit rounding scatters the lines' slopes by 0.003 nm, over the
+    0.0019 nm a flatten's fits must agree within on this smooth, 0.09 nm-noise map.) Its lowest count occurs
+    once in the reference: no clipped floor."""
+    from markcal.stages.indent_select import clipped_floor_px
+    from markcal.stages.indent_unflatten import detect_line_flatten
+    path = _real("afm/bruker_nanoscope/full_multiple_images.txt")
+    raw_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_raw.csv", delimiter=",")
+    conv_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_converted.csv", delimiter=",")
+    im = read_image(path)
+    assert np.ptp(raw_ref.mean(axis=1)) > 100                      # counts: the lines' means differ widely
+    assert detect_line_flatten(raw_ref) is None and detect_line_flatten(im.data) is None
+    found = detect_line_flatten(conv_ref)
+    assert found is not None and found.axis == 0 and found.how == "poly"
+    assert np.sum(raw_ref == raw_ref.min()) < 8 and clipped_floor_px(im.data) == 0
+    assert "resampled" not in im.meta
+
+
+@pytest.mark.parametrize("rel,pixel_nm", [("afm/jpk_wsxm/sample_0.jpk", 1.27702), ("afm/jpk_wsxm/sample_0.stp", 0.9765625),
+                                          ("afm/jpk_wsxm/sample_0.top", 0.9765625),
+                                          ("afm/bruker_nanoscope/full_multiple_images.txt", 2000 / 512)])
+def test_real_maps_square_pixels_kept(rel, pixel_nm):
+    """Real maps of square pixels (the references' pixel sizes, from AFMReader and the NanoScope header) are
+    read as they are: not resampled, the reference pixel size."""
+    im = read_image(_real(rel))
+    assert "resampled" not in im.meta and im.pixel_um * 1e3 == pytest.approx(pixel_nm, rel=1e-5)
