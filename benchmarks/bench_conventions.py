@@ -28,6 +28,7 @@ import time
 import numpy as np
 
 from markcal.fixtures.indent_single_ruled import render_single_ruled
+from markcal.fixtures.line_flatten import flatten_lines
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import gsf_bytes
@@ -39,25 +40,14 @@ CASES = ("flatten-mean", "flatten-median", "flatten-line", "flatten-quadratic", 
          "noise5")
 
 
-def _flatten(z, how, axis=0):
-    """Each line's median (``how`` "median") or polynomial of order ``how`` taken off (axis 1: columns)."""
-    z = z if axis == 0 else z.T
-    if how == "median":
-        out = z - np.median(z, axis=1)[:, None]
-    else:
-        b = np.linspace(-1.0, 1.0, z.shape[1])[:, None] ** np.arange(how + 1)
-        out = z - (b @ np.linalg.lstsq(b, z.T, rcond=None)[0]).T
-    return out if axis == 0 else out.T
-
-
 def changed(case, r, rng):
     """The render's heights (nm) as the case changes them, and the lines' spacing over the pixel's."""
     z = r.height_nm.astype(float).copy()
     order = {"mean": 0, "line": 1, "quadratic": 2, "cubic": 3, "median": "median"}
     if case.startswith("flatten-col-"):
-        return _flatten(z, order[case[12:]], axis=1), 1
+        return flatten_lines(z, order[case[12:]], axis=1), 1
     if case.startswith("flatten-"):
-        return _flatten(z, order[case[8:]]), 1
+        return flatten_lines(z, order[case[8:]]), 1
     if case == "nan-lines":
         ci = int(r.truth["centre_um"][1] / r.pixel_um)
         z[[10, ci, min(ci + 40, z.shape[0] - 6)], :] = np.nan

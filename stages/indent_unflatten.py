@@ -10,11 +10,11 @@ the map as it was before the flatten, up to a plane.
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
+
 from .level import noise_nm
 
 __all__ = ["LineFlatten", "detect_line_flatten", "unflatten_lines"]
@@ -75,8 +75,7 @@ def _agree(coef, tol):
         return False
     i = np.flatnonzero(ok).astype(float)
     c = coef[ok]
-    trend = np.polyval(np.polyfit(i, c, 1), i[:, None]) if c.shape[1] == 1 else \
-        np.column_stack([np.polyval(np.polyfit(i, c[:, k], 1), i) for k in range(c.shape[1])])
+    trend = np.column_stack([np.polyval(np.polyfit(i, c[:, k], 1), i) for k in range(c.shape[1])])
     dev = np.max(np.abs(c - trend), axis=1)
     return bool(np.quantile(dev, AGREE_FRACTION) <= tol)
 

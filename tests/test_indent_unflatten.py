@@ -7,18 +7,13 @@ import pytest
 
 from markcal.fixtures.indent_maps import render_afm
 from markcal.fixtures.indent_single_ruled import render_single_ruled
+from markcal.fixtures.line_flatten import flatten_lines
 from markcal.stages.indent_unflatten import LineFlatten, detect_line_flatten, unflatten_lines
 
 
 def _flatten(z, how, axis=0):
-    """Each line's median (``how`` "median") or polynomial fit of order ``how`` taken off."""
-    z = np.asarray(z, float) if axis == 0 else np.asarray(z, float).T
-    if how == "median":
-        out = z - np.median(z, axis=1)[:, None]
-    else:
-        b = np.linspace(-1.0, 1.0, z.shape[1])[:, None] ** np.arange(how + 1)
-        out = z - (b @ np.linalg.lstsq(b, z.T, rcond=None)[0]).T
-    return (out if axis == 0 else out.T).astype(np.float32)
+    """Each line's fit taken off (:func:`markcal.fixtures.line_flatten.flatten_lines`), stored as float32."""
+    return flatten_lines(z, how, axis).astype(np.float32)
 
 
 def _pit_map(seed=0, n=200, depth_nm=800.0, noise_nm=0.5):

@@ -17,9 +17,9 @@ import pytest
 from markcal.fixtures.cracks import radial_cracks
 from markcal.fixtures.indent_om_aperture import render_om_aperture, write_om_aperture
 from markcal.fixtures.indent_single_ruled import render_single_ruled, write_single_ruled
+from markcal.fixtures.line_flatten import flatten_lines
 from markcal.pipeline.config import read_array_spec
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
-from test_indent_unflatten import _flatten
 
 
 def _corners_um(tab, k):
@@ -47,7 +47,7 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how, axis):
     signature (every line's fit alike) and each line's fit is taken again from its far field, followed line
     by line (``stages/indent_unflatten``). Tolerances: the single-imprint goals."""
     r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
-    z = _flatten(r.height_nm, how, axis)
+    z = flatten_lines(r.height_nm, how, axis)
     gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=z.astype(np.float32)), str(tmp_path), "map")
     res = run_indents([gsf], None, IndentsOptions())
     _assert_single_goals(res.indents, r)
@@ -63,7 +63,7 @@ def test_flattened_scan_cropped_afterwards(tmp_path, seed):
     round works under the side strips' offsets (session 14: the first surface fitted through them bent 240 nm
     on seed 3 and masked 97 % of the field). Tolerances: the single-imprint goals."""
     r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
-    z = _flatten(r.height_nm, 0)
+    z = flatten_lines(r.height_nm, 0)
     right = np.mean([c["col"] for c in r.truth["corners"]]) > 128
     z = z[:, 24:] if right else z[:, :-24]
     shift = 24 * r.pixel_um if right else 0.0
