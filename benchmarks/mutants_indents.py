@@ -259,6 +259,20 @@ MUTANTS_INDENTS = [
         "new": "            for order in ():\n",
         "tests": ["tests/test_indent_unflatten.py"],
     },
+    {   # a text export's rounding ignored: the lines' fits must agree within 2 % of the noise (session 16)
+        "name": "unflatten-rounding-ignored",
+        "file": "stages/indent_unflatten.py",
+        "old": "            if rounding.digits is None and rounding.step_nm == 0.0:\n",
+        "new": "            if True:\n",
+        "tests": ["tests/test_indent_unflatten.py"],
+    },
+    {   # the grid's step taken as any gap (session 16)
+        "name": "unflatten-step-any-gap",
+        "file": "stages/indent_unflatten.py",
+        "old": "    return float(best) if best_whole >= 0.95 else 0.0\n",
+        "new": "    return float(best)\n",
+        "tests": ["tests/test_indent_unflatten.py"],
+    },
     {   # pits whose contact area is no quadrilateral's between their corners taken as imprints (session 14)
         "name": "select-any-area-ratio",
         "file": "stages/indent_select.py",

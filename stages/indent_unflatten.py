@@ -69,15 +69,83 @@ def _line_fits(z, order, how):
 
 
 def _agree(coef, tol):
-    """Whether the rows' fits are equal within ``tol`` up to a trend along the lines' index (a plane)."""
+    """Whether the rows' fits are equal within ``tol`` (a number, or one per row) up to a trend along the
+    lines' index (a plane)."""
     ok = np.isfinite(coef[:, 0])
     if ok.sum() < max(8, 0.5 * len(coef)):
         return False
     i = np.flatnonzero(ok).astype(float)
     c = coef[ok]
     trend = np.column_stack([np.polyval(np.polyfit(i, c[:, k], 1), i) for k in range(c.shape[1])])
-    dev = np.max(np.abs(c - trend), axis=1)
-    return bool(np.quantile(dev, AGREE_FRACTION) <= tol)
+    dev = np.max(np.abs(c - trend), axis=1) / np.broadcast_to(tol, ok.shape)[ok]
+    return bool(np.quantile(dev, AGREE_FRACTION) <= 1.0)
+
+
+def significant_digits(v):
+    """How many significant digits (2-6) the values ``v`` (finite, nonzero) were written with, or None.
+
+    Text exports often keep 3 or 4 digits (``-1.65E+00``).
+    """
+    def written_with(x, n):
+        m = x / 10.0 ** (np.floor(np.log10(np.abs(x))) - n + 1)       # n digits before the point
+        return bool(np.all(np.abs(m - np.round(m)) <= 1e-6 * np.abs(m)))
+
+    for n in range(2, 7):
+        if written_with(v[:64], n) and written_with(v, n):          # most maps fail on the first values
+            return n
+    return None
+
+
+def value_step(v, digits=None):
+    """The step of the grid the values ``v`` lie on (integer counts times their scale), or 0.0 for values of
+    any size: the typical smallest gap between distinct values, when 95 % of all gaps are whole multiples of
+    it (to the last of ``digits`` significant digits, when the values were written so)."""
+    u = np.unique(v[:: max(1, v.size // 4096)])
+    if u.size < 8:
+        return 0.0
+    gap = np.diff(u)
+    slack = 0.0
+    if digits is not None:
+        top = np.maximum(np.abs(u[1:]), np.abs(u[:-1]))
+        slack = 10.0 ** (np.floor(np.log10(np.maximum(top, 1e-300))) - digits + 1)
+    best, best_whole = 0.0, 0.0
+    small, count = np.unique(np.round(gap[gap < 1.5 * np.percentile(gap, 10)], 12), return_counts=True)
+    for step in small[np.argsort(-count)][:16]:                 # the commonest small gaps
+        if step > 0:
+            whole = np.mean(np.abs(gap - step * np.round(gap / step)) <= 0.02 * step + slack)
+            best, best_whole = (step, whole) if whole > best_whole else (best, best_whole)
+    return float(best) if best_whole >= 0.95 else 0.0
+
+
+@dataclass(frozen=True)
+class Rounding:
+    """How a map's heights were rounded when written: ``digits`` significant digits (None: not so) and a
+    grid of ``step_nm`` (0: none). Each height is then off by up to half its last digit or step, which
+    scatters the lines' fits by more than a flatten's agreement allows on a smooth map."""
+
+    digits: int | None
+    step_nm: float
+
+    @classmethod
+    def of(cls, z, n_sample=65536):
+        v = np.asarray(z, np.float64).ravel()
+        v = v[np.isfinite(v) & (v != 0)]
+        if v.size < 64:
+            return cls(None, 0.0)
+        v = v[:: max(1, v.size // n_sample)]
+        digits = significant_digits(v)
+        return cls(digits, value_step(v, digits))
+
+    def tol(self, zz, order, k_sigma=4.0):
+        """Per row of ``zz``: ``k_sigma`` times the largest standard deviation the rounding gives a
+        coefficient of the row's polynomial fit of ``order`` (uniform, independent rounding errors)."""
+        var_px = np.full(zz.shape[0], self.step_nm ** 2 / 12.0)
+        if self.digits is not None:
+            last = 10.0 ** (np.floor(np.log10(np.maximum(np.abs(zz), 1e-300))) - self.digits + 1)
+            var_px = var_px + np.nanmean(np.where(np.isfinite(zz), last ** 2 / 12.0, np.nan), axis=1)
+        b = _basis(zz.shape[1], order)
+        gain = float(np.max(np.diag(np.linalg.inv(b.T @ b))))
+        return k_sigma * np.sqrt(var_px * gain)
 
 
 def detect_line_flatten(z_nm: np.ndarray) -> LineFlatten | None:
@@ -99,15 +167,22 @@ def detect_line_flatten(z_nm: np.ndarray) -> LineFlatten | None:
     scale = float(np.nanmax(z) - np.nanmin(z))
     if not (np.isfinite(sigma) and scale > 0):
         return None
-    # the file's rounding: float32 keeps 7 digits of the heights' range
+    # the file's rounding: float32 keeps 7 digits of the heights' range; a text export may keep fewer
     tol = max(AGREE_NOISE * sigma, 1e-6 * scale)
+    rounding = Rounding.of(z)
     for axis in (0, 1):
         zz = z if axis == 0 else z.T
+
+        def tol_of(order):
+            if rounding.digits is None and rounding.step_nm == 0.0:
+                return tol
+            return np.maximum(tol, rounding.tol(zz, order))
+
         # any least-squares flatten leaves every line's mean alike: the higher orders are tried only then;
         # a median flatten is tried on a few lines first (the whole map's medians cost more)
-        if _agree(_line_fits(zz, 0, "poly"), tol):
+        if _agree(_line_fits(zz, 0, "poly"), tol_of(0)):
             for order in (3, 2, 1):
-                if _agree(_line_fits(zz, order, "poly"), tol):
+                if _agree(_line_fits(zz, order, "poly"), tol_of(order)):
                     return LineFlatten(axis=axis, order=order, how="poly")
             return LineFlatten(axis=axis, order=0, how="poly")
         few = zz[:: max(1, zz.shape[0] // 24)]

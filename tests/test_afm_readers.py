@@ -424,20 +424,19 @@ def test_real_bruker_map_line_flatten_and_clipping_against_references():
     """The real NanoScope file as stored is no line-flattened map: its raw counts (jmarini/nanoscope's
     ``reference_raw.csv``) have lines whose means differ, so neither the reference's values nor markcal's
     read of them carry the signature. That library's own export flattened by line (``reference_converted.csv``,
-    each line's least-squares line taken off, heights to 3 digits) does: it is recognised as flattened along
-    the rows. (Its order reads as 0: the 3-digit rounding scatters the lines' slopes by 0.003 nm, over the
-    0.0019 nm a flatten's fits must agree within on this smooth, 0.09 nm-noise map.) Its lowest count occurs
-    once in the reference: no clipped floor."""
+    each line's least-squares line, in whole counts, taken off; heights to 3 digits) does: it is recognised as
+    each row's line taken off. (The rounding to counts and digits scatters the lines' slopes by 0.003 nm, over
+    2 % of this smooth map's 0.09 nm noise; the agreement allows for the rounding it finds.) Its lowest count
+    occurs once in the reference: no clipped floor."""
     from markcal.stages.indent_select import clipped_floor_px
-    from markcal.stages.indent_unflatten import detect_line_flatten
+    from markcal.stages.indent_unflatten import LineFlatten, detect_line_flatten
     path = _real("afm/bruker_nanoscope/full_multiple_images.txt")
     raw_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_raw.csv", delimiter=",")
     conv_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_converted.csv", delimiter=",")
     im = read_image(path)
     assert np.ptp(raw_ref.mean(axis=1)) > 100                      # counts: the lines' means differ widely
     assert detect_line_flatten(raw_ref) is None and detect_line_flatten(im.data) is None
-    found = detect_line_flatten(conv_ref)
-    assert found is not None and found.axis == 0 and found.how == "poly"
+    assert detect_line_flatten(conv_ref) == LineFlatten(axis=0, order=1, how="poly")
     assert np.sum(raw_ref == raw_ref.min()) < 8 and clipped_floor_px(im.data) == 0
     assert "resampled" not in im.meta
 
