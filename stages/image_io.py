@@ -19,6 +19,8 @@ waves, which have no magic bytes). Supported:
   header plus little-endian float32). ``XYUnits`` and ``ZUnits`` must be given.
 - Gwyddion ``.gwy`` (gwyfile): the channel titled Height/Topography/Z unless
   one is named. A field without a lateral or height unit is refused.
+- Gwyddion's ASCII data matrix export with its comment header (``# Value units: m``; any extension,
+  ``stages/text_maps``); without the header the height unit is unknown and the file is refused.
 - Igor binary wave ``.ibw`` (igor2) as Asylum Research writes it: a 3-D wave
   whose layers are labelled (``HeightRetrace``, ``AmplitudeRetrace``, ...);
   the Height layer is read (the trace before the retrace), heights in m.
@@ -38,6 +40,7 @@ from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_chan
     read_spm_file, sniff_format
 from .errors import MarkcalError
 from .io import existing_file
+from .text_maps import is_text_matrix, parse_text_matrix
 
 __all__ = ["Image", "read_image", "parse_gsf", "gsf_bytes"]
 
@@ -120,11 +123,13 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
             name, read = "gsf", _read_gsf
         elif head.startswith(_PICTURE_MAGIC):
             name, read = "picture", _read_picture
+        elif is_text_matrix(head) or ext in (".txt", ".asc", ".dat", ".csv"):
+            name, read = "text matrix", _read_text
         elif ext in by_ext:                       # no magic (Igor) or a damaged file: its reader says what is wrong
             name, read = ext[1:], by_ext[ext]
         else:
             raise MarkcalError("not a known image format (TIFF, PNG, JPEG, BMP, GSF, GWY, IBW, Bruker NanoScope, "
-                               "Nanosurf NID, JPK, WSxM)", path)
+                               "Nanosurf NID, JPK, WSxM, Gwyddion text matrix)", path)
         reader = lambda p: read(p, channel)                      # noqa: E731
     try:
         data, px, guess, meta = reader(path)
@@ -403,6 +408,21 @@ def _read_gsf(path, channel=None):
         if "YReal" in h:
             px = pixel_um_xy(float(h["XReal"]) * xy, float(h["YReal"]) * xy, data.shape[1], data.shape[0])
     return data.astype(np.float64) * height_nm_per_unit(zu), px, "afm", meta
+
+
+# ----------------------------------------------------------------------------- text matrix
+
+def _read_text(path, channel=None):
+    with open(path, "rb") as fh:
+        buf = fh.read()
+    if b"\x00" in buf[:4096]:
+        raise MarkcalError("not a text matrix (binary bytes)")
+    try:
+        text = buf.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        text = buf.decode("latin-1")
+    data, px, meta = parse_text_matrix(text, channel)
+    return data, px, "afm", meta
 
 
 # ----------------------------------------------------------------------------- GWY

@@ -56,6 +56,21 @@ def test_single_ruled_imprint_flattened_line_by_line(tmp_path, seed, how, axis):
     assert res.files[0].info["line_flatten"] == res.summary["line_flatten"] == f"each {line}'s {what} taken off"
 
 
+def test_single_ruled_imprint_as_a_gwyddion_text_export(tmp_path):
+    """Seed 8 flattened by each row's line and exported as Gwyddion's ASCII data matrix (heights in m to
+    5 significant digits, the field's size in the header): read by its header, the flatten and its order
+    recognised through the rounding, measured to the single-imprint goals."""
+    from markcal.stages.text_maps import text_matrix
+    r = render_single_ruled(8, size_px=256)
+    rows, cols = r.height_nm.shape
+    p = tmp_path / "map.txt"
+    p.write_text(text_matrix(flatten_lines(r.height_nm, 1) * 1e-9, cols * r.pixel_um * 1e-6,
+                             rows * r.pixel_um * 1e-6), encoding="utf-8")
+    res = run_indents([str(p)], None, IndentsOptions())
+    assert res.files[0].info["line_flatten"] == "each row's line taken off"
+    _assert_single_goals(res.indents, r)
+
+
 @pytest.mark.parametrize("seed", [3, 5])
 def test_flattened_scan_cropped_afterwards(tmp_path, seed):
     """Each row's mean taken off, then 24 columns cropped away from the imprint (a flatten, then a crop, in a

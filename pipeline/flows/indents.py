@@ -27,6 +27,7 @@ from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
+from markcal.stages.text_maps import is_text_matrix
 
 #: QA limits (paper sec. 4): diameter within +-150 nm of nominal, H/D >= 0.04
 TOLERANCE_UM = 0.15
@@ -467,7 +468,7 @@ def _claims(path) -> bool:
             head = fh.read(4096)
     except OSError:
         return False
-    return sniff_format(head) is not None
+    return sniff_format(head) is not None or is_text_matrix(head)
 
 
 def indents_options(o: dict) -> IndentsOptions:
