@@ -259,6 +259,20 @@ MUTANTS_INDENTS = [
         "new": "            for order in ():\n",
         "tests": ["tests/test_indent_unflatten.py"],
     },
+    {   # the text matrix's pixel as Width over the gaps between values, not over the values (session 16)
+        "name": "text-width-over-gaps",
+        "file": "stages/text_maps.py",
+        "old": "        px = (w_um / data.shape[1], h_um / data.shape[0])\n",
+        "new": "        px = (w_um / (data.shape[1] - 1), h_um / (data.shape[0] - 1))\n",
+        "tests": ["tests/test_text_maps.py"],
+    },
+    {   # the text matrix's value unit ignored (session 16)
+        "name": "text-value-unit-ignored",
+        "file": "stages/text_maps.py",
+        "old": "    return data * scale, px, meta\n",
+        "new": "    return data, px, meta\n",
+        "tests": ["tests/test_text_maps.py"],
+    },
     {   # a text export's rounding ignored: the lines' fits must agree within 2 % of the noise (session 16)
         "name": "unflatten-rounding-ignored",
         "file": "stages/indent_unflatten.py",
