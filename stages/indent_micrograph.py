@@ -31,6 +31,7 @@ from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
 from .indent_micrograph_kernel import quad_design
 from .indent_select import dedupe
 from .indent_square_search import square_candidates
+from .threads import map_on_threads
 
 __all__ = ["info_bar_rows", "find_imprints", "measure_micrograph", "MIN_DIAGONAL_PX"]
 
@@ -512,7 +513,15 @@ def measure_micrograph(img: np.ndarray, pixel_um: float, min_diagonal_px: float 
 
 def _measure_all(work, pixel_um, min_diagonal_px, candidates) -> list:
     """The imprints the fit confirms from ``candidates`` (corners, apex, square), one per place."""
-    return dedupe([m for m in (_measure_one(work, pixel_um, min_diagonal_px, *c) for c in candidates) if m is not None])
+    candidates = list(candidates)
+    found = [None] * len(candidates)
+
+    def measure(k):
+        found[k] = _measure_one(work, pixel_um, min_diagonal_px, *candidates[k])
+
+    # one candidate per thread: most of a fit is the model's compiled kernel, which releases the GIL
+    map_on_threads(measure, range(len(candidates)))
+    return dedupe([m for m in found if m is not None])
 
 
 def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
