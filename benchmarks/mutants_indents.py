@@ -259,6 +259,13 @@ MUTANTS_INDENTS = [
         "new": "            for order in ():\n",
         "tests": ["tests/test_indent_unflatten.py"],
     },
+    {   # a contact boundary cut into pieces by the border left unclosed: no imprint (session 16)
+        "name": "single-boundary-pieces-not-closed",
+        "file": "stages/indent_single.py",
+        "old": "        for c in find_contours(ring, level):\n",
+        "new": "        for c in []:\n",
+        "tests": ["tests/test_independent_renders.py::test_boundary_cut_into_pieces_by_the_border_is_measured_and_flagged"],
+    },
     {   # the text matrix's pixel as Width over the gaps between values, not over the values (session 16)
         "name": "text-width-over-gaps",
         "file": "stages/text_maps.py",

@@ -150,7 +150,19 @@ def _boundary(zb, level, inside_rc):
         if best is None or (closed and best_cut) or (closed == (not best_cut) and len(c) < best_len):
             best, best_len, best_cut = c, len(c), not closed
     if best is None:
-        return None, False
+        # no one contour goes half round the floor: the border cuts the boundary into pieces (an imprint
+        # filling the map, its far field a little below the level where it meets the border). Closed along
+        # the border instead: the map ringed by a pixel above the level (the pieces and the border between
+        # them enclose the floor); flagged as cut
+        ring = np.pad(zb, 1, constant_values=abs(level) + 1.0)
+        ny, nx = zb.shape
+        for c in find_contours(ring, level):
+            if len(c) >= 8 and np.allclose(c[0], c[-1]) and Path(c[:, ::-1]).contains_point(inside_rc[::-1] + 1):
+                if best is None or len(c) < best_len:
+                    best, best_len = np.clip(c - 1.0, 0.0, [ny - 1, nx - 1]), len(c)
+        if best is None:
+            return None, False
+        best_cut = True
     cut = best_cut
     gr, gc = np.gradient(zb)
     g_r, g_c = _bilinear(gr, best[:, 0], best[:, 1]), _bilinear(gc, best[:, 0], best[:, 1])

@@ -312,3 +312,19 @@ def test_feedback_render_chip_beside_a_corner(tmp_path):
     direction now comes from the facets' slopes. (The chip is in the contact area: not asserted.)"""
     d, _depth, _area, corner, t = _feedback_errors(tmp_path, 10, noise_nm=0.5, **dict(_CLEAN, chipping=True))
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]) and corner <= 1.5, (d, corner)
+
+
+def test_boundary_cut_into_pieces_by_the_border_is_measured_and_flagged(tmp_path):
+    """Feedback-renderer seed 14: the imprint fills 87 % of the map, its far field meets the border a little
+    below the contour's level, and the border cuts the contact boundary into three pieces, none going half
+    round the floor. Before session 16: `no imprint found`. The pieces are now closed along the border: one
+    imprint, flagged `cut_by_border` (its d is +29 %: the boundary runs along the border there), its depth
+    within 10 % and its centre within a fifth of d of the truth."""
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    r = render_feedback(14)
+    gsf, _ = write_feedback(r, str(tmp_path), "fb14")
+    res = run_indents([gsf], None, IndentsOptions())
+    t, tab = r.truth, res.indents
+    assert len(tab["x_um"]) == 1 and tab["cut_by_border"][0] and res.summary["n_cut_by_border"] == 1
+    assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.10
+    assert np.hypot(tab["x_um"][0] - t["centre_um"][0], tab["y_um"][0] - t["centre_um"][1]) <= 0.2 * t["d_um"]
