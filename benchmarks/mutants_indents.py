@@ -269,8 +269,8 @@ MUTANTS_INDENTS = [
     {   # the text matrix's pixel as Width over the gaps between values, not over the values (session 16)
         "name": "text-width-over-gaps",
         "file": "stages/text_maps.py",
-        "old": "        px = (w_um / data.shape[1], h_um / data.shape[0])\n",
-        "new": "        px = (w_um / (data.shape[1] - 1), h_um / (data.shape[0] - 1))\n",
+        "old": "        px = pixel_um_xy(w_um, h_um, data.shape[1], data.shape[0])\n",
+        "new": "        px = pixel_um_xy(w_um, h_um, data.shape[1] - 1, data.shape[0] - 1)\n",
         "tests": ["tests/test_text_maps.py"],
     },
     {   # the text matrix's value unit ignored (session 16)

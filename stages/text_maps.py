@@ -22,7 +22,7 @@ import re
 
 import numpy as np
 
-from .afm_files import Channel, height_nm_per_unit, length_um, pick_channel
+from .afm_files import Channel, height_nm_per_unit, length_um, pick_channel, pixel_um_xy
 from .errors import MarkcalError
 
 __all__ = ["is_text_matrix", "parse_text_matrix", "text_matrix"]
@@ -138,7 +138,7 @@ def parse_text_matrix(text: str, channel: str | None = None):
     elif h_um is None:
         px = w_um / data.shape[1]
     else:
-        px = (w_um / data.shape[1], h_um / data.shape[0])
+        px = pixel_um_xy(w_um, h_um, data.shape[1], data.shape[0])
     return data * scale, px, meta
 
 

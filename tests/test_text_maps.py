@@ -37,6 +37,15 @@ def test_gwyddion_text_matrix_read_as_written(tmp_path):
     assert im.kind == "afm" and im.shape == (12, 16) and im.pixel_um == pytest.approx(10.0)
     assert im.data[0, :4] == pytest.approx([1.0, 2.0, 3.0, 4.0]) and im.data[2, 3] == pytest.approx(12.5)
     assert im.meta["format"] == "text" and im.meta["channel"] == "Height" and im.meta["z_unit_in_file"] == "m"
+    assert "resampled" not in im.meta                           # 160 µm / 16 = 120 µm / 12: square pixels
+
+
+def test_rectangular_pixels_resampled(tmp_path):
+    """A field of 160 x 60 µm over 16 x 12 values: pixels of 10 x 5 µm, resampled to square ones of 5 µm."""
+    p = tmp_path / "map.txt"
+    p.write_text(_tile(GWY_TEXT).replace("# Height: 120.000 µm", "# Height: 60.000 µm"), encoding="utf-8")
+    im = read_image(str(p))
+    assert im.pixel_um == pytest.approx(5.0) and im.shape == (12, 32) and "resampled" in im.meta
 
 
 def test_decimal_comma_and_any_extension(tmp_path):
