@@ -18,6 +18,7 @@ A matrix without the header has no height unit and no lateral size; it is refuse
 """
 from __future__ import annotations
 
+import io
 import re
 
 import numpy as np
@@ -64,7 +65,8 @@ def _numbers(line: str) -> list[float]:
 
 
 def _blocks(text: str):
-    """(header dict, data rows) per channel block: a header opens a block after data lines."""
+    """(header dict, data lines as (line number, text)) per channel block: a header opens a block after
+    data lines."""
     blocks, head, rows = [], {}, []
     for n, line in enumerate(text.splitlines(), 1):
         s = line.strip()
@@ -78,13 +80,31 @@ def _blocks(text: str):
             if m is not None and _field(m["key"]) is not None:
                 head[_field(m["key"])] = m["value"]
             continue
+        rows.append((n, s))
+    if rows:
+        blocks.append((head, rows))
+    return blocks
+
+
+def _matrix(lines) -> np.ndarray:
+    """The values of a block's data lines, (lines, values per line)."""
+    body = "\n".join(s for _, s in lines)
+    if "," not in body and ";" not in body:
+        try:                                           # numpy's parser: 0.1-0.2 s for a 1024 x 1024 export
+            return np.loadtxt(io.StringIO(body), dtype=np.float64, ndmin=2)
+        except ValueError:
+            pass                                       # line by line, to say which line is wrong
+    rows = []
+    for n, s in lines:
         try:
             rows.append(_numbers(s))
         except ValueError:
             raise MarkcalError(f"line {n} of the text matrix is neither a header nor numbers: {s[:40]!r}") from None
-    if rows:
-        blocks.append((head, rows))
-    return blocks
+    widths = {len(r) for r in rows}
+    if len(widths) != 1:
+        raise MarkcalError(f"text matrix lines hold {min(widths)} to {max(widths)} values (a truncated or "
+                           "ragged file)")
+    return np.asarray(rows, np.float64)
 
 
 def _size_um(text: str | None) -> float | None:
@@ -115,12 +135,8 @@ def parse_text_matrix(text: str, channel: str | None = None):
     else:
         picked = pick_channel(chans, channel)
         index = next(i for i, c in enumerate(chans) if c is picked)
-    head, rows = blocks[index]
-    widths = {len(r) for r in rows}
-    if len(widths) != 1:
-        raise MarkcalError(f"text matrix lines hold {min(widths)} to {max(widths)} values (a truncated or "
-                           "ragged file)")
-    data = np.asarray(rows, np.float64)
+    head, lines = blocks[index]
+    data = _matrix(lines)
     name = chans[index].name
     unit = head.get("value_units")
     if unit is None:
