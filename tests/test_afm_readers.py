@@ -449,3 +449,20 @@ def test_real_maps_square_pixels_kept(rel, pixel_nm):
     read as they are: not resampled, the reference pixel size."""
     im = read_image(_real(rel))
     assert "resampled" not in im.meta and im.pixel_um * 1e3 == pytest.approx(pixel_nm, rel=1e-5)
+
+
+@pytest.mark.parametrize("rel", ["afm/bruker_legacy/old_bruker.002", "afm/bruker_nanoscope/full_multiple_images.txt",
+                                 "afm/jpk_wsxm/sample_0.jpk", "afm/jpk_wsxm/sample_0.stp", "afm/nanosurf_nid/circles.nid",
+                                 "afm/nanosurf_nid/sapphire.nid"])
+def test_real_maps_written_to_few_digits_are_not_taken_for_flattened(rel):
+    """The line-flatten test allows for the rounding of a text export (session 16): the real maps, as read and
+    written to 3, 4 or 5 significant digits, are still no line-flattened maps (their lines' fits differ by far
+    more than that rounding)."""
+    from markcal.stages.indent_unflatten import Rounding, detect_line_flatten
+    z = read_image(_real(rel)).data
+    z = z - np.nanmedian(z)
+    for digits in (3, 4, 5):
+        scale = 10.0 ** (np.floor(np.log10(np.maximum(np.abs(z), 1e-300))) - digits + 1)
+        written = np.round(z / scale) * scale
+        assert Rounding.of(written).digits == digits
+        assert detect_line_flatten(written) is None
