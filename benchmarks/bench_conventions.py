@@ -15,7 +15,9 @@ Cases:
 - ``clip``: heights below the map's 0.2 % percentile read as that value (the depth goal cannot be met: the
   floor is cut; the file must be flagged, ``clipped`` column);
 - ``half-lines``, ``third-lines``: every second / third line only, over the same field (non-square pixels);
-- ``noise5``: 5 nm white noise added.
+- ``noise5``: 5 nm white noise added;
+- ``flatten-line-text3``: each row's line taken off, written as Gwyddion's ASCII data matrix to 3 significant
+  digits (the flatten and its order must be found through the rounding).
 """
 from __future__ import annotations
 
@@ -32,18 +34,21 @@ from markcal.fixtures.line_flatten import flatten_lines
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import gsf_bytes
+from markcal.stages.text_maps import text_matrix
 
 from bench_independent import afm_errors, afm_within, nearest_row, parse_seeds  # noqa: E402
 
 CASES = ("flatten-mean", "flatten-median", "flatten-line", "flatten-quadratic", "flatten-cubic",
          "flatten-col-mean", "flatten-col-line", "nan-lines", "nan-block", "clip", "half-lines", "third-lines",
-         "noise5")
+         "noise5", "flatten-line-text3")
 
 
 def changed(case, r, rng):
     """The render's heights (nm) as the case changes them, and the lines' spacing over the pixel's."""
     z = r.height_nm.astype(float).copy()
     order = {"mean": 0, "line": 1, "quadratic": 2, "cubic": 3, "median": "median"}
+    if case == "flatten-line-text3":                 # written below as a Gwyddion text export, 3 digits
+        return flatten_lines(z, 1), 1
     if case.startswith("flatten-col-"):
         return flatten_lines(z, order[case[12:]], axis=1), 1
     if case.startswith("flatten-"):
@@ -84,8 +89,13 @@ def main(argv=None):
                 z, step = changed(case, r, rng)
                 field_m = z.shape[1] * r.pixel_um * 1e-6
                 path = os.path.join(tmp, f"{case}_{s}.gsf")
-                with open(path, "wb") as fh:
-                    fh.write(gsf_bytes(z * 1e-9, field_m, z.shape[0] * step * r.pixel_um * 1e-6))
+                if case.endswith("-text3"):
+                    path = path[:-4] + ".txt"
+                    with open(path, "w", encoding="utf-8") as fh:
+                        fh.write(text_matrix(z * 1e-9, field_m, z.shape[0] * step * r.pixel_um * 1e-6, digits=3))
+                else:
+                    with open(path, "wb") as fh:
+                        fh.write(gsf_bytes(z * 1e-9, field_m, z.shape[0] * step * r.pixel_um * 1e-6))
                 t0 = time.perf_counter()
                 try:
                     res = run_indents([path], None, IndentsOptions())
