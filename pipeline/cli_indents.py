@@ -53,11 +53,13 @@ def cmd_render_afm(args) -> int:
 
 
 def _render_single(args, say) -> int:
-    """One real-like imprint: heights.ibw (Height, Deflection, ZSensor in m), heights.tif / .gsf, truth.json."""
+    """One real-like imprint: heights.ibw (Height, Deflection, ZSensor in m), heights.tif / .gsf / .txt,
+    truth.json."""
     from markcal.fixtures.indent_maps import tiff_bytes
     from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
-    from markcal.reports.files import atomic_write_bytes, write_json
+    from markcal.reports.files import atomic_write_bytes, atomic_write_text, write_json
     from markcal.stages.image_io import gsf_bytes
+    from markcal.stages.text_maps import text_matrix
     o = SingleOptions(size_px=args.size_px, fill=args.fill, corner_margin_px=args.corner_margin_px,
                       cracks=args.cracks, crack_depth_nm=args.crack_depth_nm)
     say(f"rendering a single-imprint AFM map, seed {args.seed}")
@@ -72,6 +74,9 @@ def _render_single(args, say) -> int:
         atomic_write_bytes(os.path.join(args.out, "heights.gsf"),
                            gsf_bytes(r.data.astype("float64") * 1e-9, ext_m, ext_m * r.data.shape[0] / r.data.shape[1],
                                      "m", "Height"))
+    if "txt" in fmts:
+        atomic_write_text(os.path.join(args.out, "heights.txt"),
+                          text_matrix(r.data * 1e-9, r.pixel_um * 1e-6 * r.data.shape[1], r.pixel_um * 1e-6 * r.data.shape[0]))
     write_json(os.path.join(args.out, "truth.json"), r.truth)
     print(os.path.abspath(args.out))
     return 0
@@ -162,7 +167,7 @@ def register(sub, render_sub) -> None:
         r.add_argument("--size-px", type=int, default=512)
         if what == "afm":
             r.add_argument("--field-um", type=_positive, default=50.0)
-            r.add_argument("--formats", default="tif,gsf", help="comma list of tif, gsf, ibw")
+            r.add_argument("--formats", default="tif,gsf", help="comma list of tif, gsf, ibw, txt (Gwyddion's ASCII data matrix)")
             r.add_argument("--facet-bulge", type=float, default=0.0,
                            help="convex facets (fraction of the depth), 0: planar")
             r.add_argument("--single", action="store_true",

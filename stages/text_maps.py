@@ -163,7 +163,7 @@ def text_matrix(z, width_m: float, height_m: float, unit: str = "m", channel: st
     """A (rows, cols) field as Gwyddion's ASCII data matrix export writes it (header, ``digits``
     significant digits, tab-separated, top line first)."""
     z = np.asarray(z, np.float64)
-    head = [f"# Channel: {channel}", f"# Width: {width_m * 1e6:.3f} µm", f"# Height: {height_m * 1e6:.3f} µm",
+    head = [f"# Channel: {channel}", f"# Width: {width_m * 1e6:.7g} µm", f"# Height: {height_m * 1e6:.7g} µm",
             f"# Value units: {unit}"]
     body = ["\t".join(f"{v:.{digits - 1}e}" for v in row) for row in z]
     return "\n".join(head + body) + "\n"

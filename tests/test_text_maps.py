@@ -113,3 +113,14 @@ def test_no_lateral_unit_asks_for_the_pixel_size(tmp_path):
     with pytest.raises(MarkcalError, match="has no length unit: give --pixel-size-um"):
         read_image(str(p))
     assert read_image(str(p), pixel_size_um=0.5).pixel_um == 0.5
+
+
+def test_renderer_writes_the_text_export(tmp_path):
+    """`markcal render afm --single --formats txt` writes heights.txt beside the other formats: the same map
+    as heights.gsf, to the export's 5 digits, and the same pixel size."""
+    out = str(tmp_path / "r")
+    assert main(["render", "afm", "--single", "--seed", "3", "--size-px", "96", "--formats", "gsf,txt",
+                 "--out", out, "--quiet"]) == 0
+    txt, gsf = read_image(os.path.join(out, "heights.txt")), read_image(os.path.join(out, "heights.gsf"))
+    assert txt.pixel_um == pytest.approx(gsf.pixel_um, rel=1e-5) and txt.shape == gsf.shape
+    assert np.abs(txt.data - gsf.data).max() <= 5e-5 * np.abs(gsf.data).max()
