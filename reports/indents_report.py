@@ -227,6 +227,16 @@ def indents_report_html(res) -> str:
         parts.append(f'<div class="warn"><b>Floor clipped:</b> in {names} that many pixels hold the map\'s lowest '
                      "height exactly: the scanner reached the end of its Z range, so the floor is cut flat and the "
                      "depths (and H/D) are lower bounds. The diagonals and areas do not depend on it.</div>")
+    unsure = [f for f in res.files if f.info.get("line_flatten_uncertain")]
+    if unsure:
+        names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code>: {f.info['line_flatten_short_lines']} lines"
+                          for f in unsure)
+        parts.append('<div class="warn"><b>Flatten undone with little far field</b> (' + names + "). These maps "
+                     "had been flattened line by line, and that many of their lines have under 15 % of their length "
+                     "on the far field (pile-up or the imprint reaches both ends). Their level before the flatten "
+                     "is taken from their neighbours, so the depth and the contact area can be off by several "
+                     "percent, up to 30 % where pile-up lobes reach the border (docs/indents.md, \"The flatten "
+                     "recognised and undone\"). An export without the flatten avoids it.</div>")
     from .indent_single_report import single_section
     parts.append(single_section(res.files))
     if s["nominal_inferred"]:

@@ -105,7 +105,7 @@ def test_unflatten_restores_the_map_up_to_a_plane(how):
     100 nm off; put back, the map is the original up to a plane within 1 % of the depth (the depth goal)."""
     z0 = _pit_map()
     z = _flatten(z0, how)
-    u = unflatten_lines(z, detect_line_flatten(z))
+    u = unflatten_lines(z, detect_line_flatten(z)).z_nm
 
     def off_plane(a):
         yy, xx = np.mgrid[0:a.shape[0], 0:a.shape[1]]

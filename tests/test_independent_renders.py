@@ -328,3 +328,26 @@ def test_boundary_cut_into_pieces_by_the_border_is_measured_and_flagged(tmp_path
     assert len(tab["x_um"]) == 1 and tab["cut_by_border"][0] and res.summary["n_cut_by_border"] == 1
     assert abs(tab["depth_nm"][0] / t["depth_nm"] - 1) <= 0.10
     assert np.hypot(tab["x_um"][0] - t["centre_um"][0], tab["y_um"][0] - t["centre_um"][1]) <= 0.2 * t["d_um"]
+
+
+@pytest.mark.parametrize("seed,uncertain", [(4, True), (3, False)])
+def test_flatten_undone_with_little_far_field_is_said(tmp_path, seed, uncertain):
+    """Seed 4 flattened by each row's mean: its pile-up lobes reach the border beside the edges facing the
+    lines' ends, so 116 of 256 lines have under 15 % of their length on the far field, and the depth is
+    +27 % (the flatten cannot be undone there). That is now said: the log, `info`, `summary.json`
+    (`n_files_flatten_uncertain`) and a warning in the report. Seed 3 (every goal met) has no such line."""
+    r = render_single_ruled(seed, size_px=256, corner_margin_px=3.0 if seed % 3 == 0 else None)
+    gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=flatten_lines(r.height_nm, 0).astype(np.float32)),
+                                str(tmp_path), "map")
+    said = []
+    res = run_indents([gsf], None, IndentsOptions(), progress=said.append)
+    info = res.files[0].info
+    assert info["line_flatten"] == "each row's mean taken off"
+    assert info["line_flatten_uncertain"] is uncertain and res.summary["n_files_flatten_uncertain"] == int(uncertain)
+    assert (info["line_flatten_short_lines"] >= 0.3 * 256) if uncertain else info["line_flatten_short_lines"] == 0
+    assert any("far field (pile-up or the imprint reaches their ends)" in m for m in said) is uncertain
+    if uncertain:                                              # the depth it warns of
+        assert res.indents["depth_nm"][0] / r.truth["depth_nm"] - 1 > 0.1
+    from markcal.pipeline.cli import main
+    assert main(["indents", gsf, "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert ("Flatten undone with little far field" in (tmp_path / "out" / "report.html").read_text()) is uncertain

@@ -304,8 +304,16 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         if (flat := detect_line_flatten(heights)) is not None:
             # flattened line by line before export, imprint and all: each line's fit taken from its far field
             say(f"{name}: flattened line by line ({flat.describe()}): lines' fits taken again from the far field")
-            heights = unflatten_lines(heights, flat)
+            undone = unflatten_lines(heights, flat)
+            heights = undone.z_nm
             info["line_flatten"] = flat.describe()
+            info["line_flatten_short_lines"] = undone.n_short_lines
+            # 5 % of the lines or more: every flattened ruled seed that misses a goal, one of the nine that meet them
+            info["line_flatten_uncertain"] = undone.n_short_lines >= 0.05 * undone.n_lines
+            if info["line_flatten_uncertain"]:
+                say(f"{name}: {undone.n_short_lines} of {undone.n_lines} lines have under 15 % of their length on "
+                    "the far field (pile-up or the imprint reaches their ends): their level is uncertain, so are "
+                    "the depth and area")
         if n_clip := sel.clipped_floor_px(img.data):
             # the Z range's end: the floor is cut flat, the depth a lower bound
             say(f"{name}: {n_clip} pixels hold the map's lowest height exactly: its floor is clipped (the scanner's "
@@ -429,6 +437,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "line_flatten": files[0].info.get("line_flatten", "none"),
         "resampled": files[0].info.get("resampled", "none"),
         "n_files_floor_clipped": int(sum(bool(f.info.get("floor_clipped_px")) for f in files)),
+        "n_files_flatten_uncertain": int(sum(bool(f.info.get("line_flatten_uncertain")) for f in files)),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
