@@ -134,7 +134,8 @@ def register(sub, render_sub) -> None:
     p.add_argument("images", nargs="+", help="images: .tif/.tiff (OM, SEM or AFM), .png/.jpg/.bmp micrographs "
                                                "(with --pixel-size-um), AFM maps .gsf, .gwy, .ibw, Bruker "
                                                "NanoScope (.spm, .000-.999; by content), Nanosurf .nid, JPK .jpk, "
-                                               "WSxM .stp/.top")
+                                               "WSxM .stp/.top, Gwyddion ASCII data matrix with its header "
+                                               "(.txt; by content)")
     p.add_argument("--array", help="array spec (ARRAY.toml): [array] rows, cols, pitch_um, nominal_diameter_um; "
                                     "[indenter] load_mN (a file with only [indenter]: single imprints)")
     p.add_argument("--kind", choices=["afm", "om"], help="override the kind guessed from the file")
