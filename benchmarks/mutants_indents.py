@@ -273,6 +273,13 @@ MUTANTS_INDENTS = [
         "new": "    n_short = 0\n",
         "tests": ["tests/test_independent_renders.py::test_flatten_undone_with_little_far_field_is_said"],
     },
+    {   # batch leaves text matrices unclaimed (session 16)
+        "name": "flow-claims-no-text-matrix",
+        "file": "pipeline/flows/indents.py",
+        "old": "    return sniff_format(head) is not None or is_text_matrix(head)\n",
+        "new": "    return sniff_format(head) is not None\n",
+        "tests": ["tests/test_text_maps.py::test_batch_claims_text_matrices_by_their_header"],
+    },
     {   # the text matrix's pixel as Width over the gaps between values, not over the values (session 16)
         "name": "text-width-over-gaps",
         "file": "stages/text_maps.py",

@@ -124,3 +124,21 @@ def test_renderer_writes_the_text_export(tmp_path):
     txt, gsf = read_image(os.path.join(out, "heights.txt")), read_image(os.path.join(out, "heights.gsf"))
     assert txt.pixel_um == pytest.approx(gsf.pixel_um, rel=1e-5) and txt.shape == gsf.shape
     assert np.abs(txt.data - gsf.data).max() <= 5e-5 * np.abs(gsf.data).max()
+
+
+def test_batch_claims_text_matrices_by_their_header(tmp_path):
+    """`markcal batch` measures a Gwyddion text export in a folder (claimed by its header, not its extension)
+    and leaves other text files alone."""
+    import json
+    src = tmp_path / "in"
+    src.mkdir()
+    r = render_single_ruled(5, size_px=128)
+    rows, cols = r.height_nm.shape
+    (src / "map.txt").write_text(text_matrix(r.height_nm * 1e-9, cols * r.pixel_um * 1e-6, rows * r.pixel_um * 1e-6),
+                                 encoding="utf-8")
+    (src / "notes.txt").write_text("measured on Tuesday\n", encoding="utf-8")
+    out = tmp_path / "out"
+    assert main(["batch", str(src), "-o", str(out), "--workers", "1", "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir() if p.is_dir()) == ["map"]
+    s = json.loads((out / "map" / "summary.json").read_text())
+    assert s["n_imprints"] == 1 and abs(s["mean_d_um"] / r.truth["d_mean_um"] - 1) <= 0.01
