@@ -306,9 +306,13 @@ def _refine(img, corners, apex, d_px, square=None):
                     cs, sn = np.cos(np.radians(turn_deg)), np.sin(np.radians(turn_deg))
                     v = grow * (square - mid) @ np.array([[cs, sn], [-sn, cs]])
                     starts.append(np.concatenate([mid, (mid + v).ravel()]))
+            # every start two steps, the six best four more (the winner after six steps was among the six
+            # best after two in 63 of 64 fits of the micrograph tests and BSE renders)
+            early = [_lm(model.residual, q, 0.05 * f, 2) for q in starts]
+            cost = [_soft_cost(model.residual(q)) for q in early]
             best = None
-            for q in starts:
-                q = _lm(model.residual, q, 0.05 * f, 6)
+            for k in np.argsort(cost)[:6]:
+                q = _lm(model.residual, early[k], 0.05 * f, 4)
                 c = _soft_cost(model.residual(q))
                 if best is None or c < best[0]:
                     best = (c, q)
