@@ -280,6 +280,13 @@ MUTANTS_INDENTS = [
         "new": "    return sniff_format(head) is not None\n",
         "tests": ["tests/test_text_maps.py::test_batch_claims_text_matrices_by_their_header"],
     },
+    {   # a coarse square with its apex lost dropped, not restarted from its centre (session 16)
+        "name": "micrograph-coarse-apex-not-reset",
+        "file": "stages/indent_micrograph.py",
+        "old": "                p[:2] = p[2:10].reshape(4, 2).mean(axis=0)\n",
+        "new": "                pass\n",
+        "tests": ["tests/test_micrograph_independent.py::test_imprint_whose_facets_barely_differ_is_found"],
+    },
     {   # the text matrix's pixel as Width over the gaps between values, not over the values (session 16)
         "name": "text-width-over-gaps",
         "file": "stages/text_maps.py",

@@ -317,6 +317,10 @@ def _refine(img, corners, apex, d_px, square=None):
                 if best is None or c < best[0]:
                     best = (c, q)
             p = np.concatenate([_lm(model.residual, best[1], 0.05 * f, 20), np.zeros(4)])
+            if not _plausible(p[2:10].reshape(4, 2), p[:2]) and _plausible(p[2:10].reshape(4, 2), None):
+                # a square whose facets barely differ (light from above): their ridges, and with them the
+                # apex, are lost in the coarse blocks; the finer levels find them from its centre
+                p[:2] = p[2:10].reshape(4, 2).mean(axis=0)
             if not _plausible(p[2:10].reshape(4, 2), p[:2]):
                 # far from a square with its apex inside: the finer levels (most of the time) would not
                 # make it one (grain pieces of a BSE image: 1.2 s each)
@@ -344,12 +348,12 @@ def _refine(img, corners, apex, d_px, square=None):
 
 def _plausible(corners, apex) -> bool:
     """A coarse fit the finer levels can make an imprint: corner angles within ``COARSE_MAX_ANGLE_DEG``
-    of 90, diagonals within a factor of 2, the apex within ``COARSE_MAX_APEX_OFF`` of d from the centre
-    (the final checks are 20 deg, 1.67 and ``MAX_APEX_OFF_CENTRE``)."""
+    of 90, diagonals within a factor of 2, the apex (None: not judged) within ``COARSE_MAX_APEX_OFF`` of d
+    from the centre (the final checks are 20 deg, 1.67 and ``MAX_APEX_OFF_CENTRE``)."""
     d1, d2 = np.hypot(*(corners[0] - corners[2])), np.hypot(*(corners[1] - corners[3]))
     if not (d1 > 0 and d2 > 0 and 0.5 < d1 / d2 < 2.0):
         return False
-    off = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
+    off = 0.0 if apex is None else np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
     return bool(np.all(np.abs(_angles_deg(corners) - 90.0) < COARSE_MAX_ANGLE_DEG) and off < COARSE_MAX_APEX_OFF)
 
 
