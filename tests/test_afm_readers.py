@@ -466,3 +466,20 @@ def test_real_maps_written_to_few_digits_are_not_taken_for_flattened(rel):
         written = np.round(z / scale) * scale
         assert Rounding.of(written).digits == digits
         assert detect_line_flatten(written) is None
+
+
+def test_real_nanoscope_map_through_a_gwyddion_text_export(tmp_path):
+    """The real NanoScope map written as Gwyddion's ASCII data matrix (heights in m, 7 digits, the header's
+    field size) and read back: its reference counts x the header's nm per count, within the export's rounding,
+    and the header's pixel size (2 µm over 512 samples)."""
+    from markcal.stages.text_maps import text_matrix
+    im = read_image(_real("afm/bruker_nanoscope/full_multiple_images.txt"))
+    raw_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_raw.csv", delimiter=",")
+    p = tmp_path / "nanoscope.txt"
+    rows, cols = im.shape
+    p.write_text(text_matrix(im.data * 1e-9, cols * im.pixel_um * 1e-6, rows * im.pixel_um * 1e-6, digits=7),
+                 encoding="utf-8")
+    txt = read_image(str(p))
+    nm_per_lsb = 0.006693481 * 12.95302                                    # header: V/LSB x Sens. Zscan nm/V
+    assert txt.pixel_um == pytest.approx(2.0 / 512, rel=1e-6) and txt.meta["format"] == "text"
+    assert np.abs(txt.data[::-1] / nm_per_lsb - raw_ref).max() < 0.01     # file order: first line = bottom
