@@ -75,7 +75,7 @@ MUTANTS_INDENTS = [
     },
     {   # the corner refined on the ray ignores the straight-line zero crossing (coarse corner kept)
         "name": "single-corner-not-refined",
-        "file": "stages/indent_single.py",
+        "file": "stages/indent_corners.py",
         "old": "    s0 = -k[1] / k[0]\n",
         "new": "    s0 = length - 1.0\n",
         "tests": [_SINGLE + "::test_single_imprint_against_truth", _SINGLE + "::test_profile_crossing_where_the_valley_fit_fails"],
@@ -125,7 +125,7 @@ MUTANTS_INDENTS = [
     {   # radial cracks left in: the level contour runs out along them (session 12)
         "name": "single-cracks-not-filled",
         "file": "stages/indent_single.py",
-        "old": "    zr, groove = _fill_cracks(zr, noise, slope_px, depth)\n",
+        "old": "    zr, groove = fill_cracks(zr, noise, slope_px, depth)\n",
         "new": "    groove = np.zeros(zr.shape, bool)\n",
         "tests": [_SINGLE + "::test_radial_cracks_do_not_lengthen_the_diagonals"],
     },

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from .indent_corners import (VALLEY_END_SLOPES, bilinear, corner_on_ray, fill_cracks, region_pts, tongue_mask,
+                             unless_crack)
 from .indent_geometry import circle_fit, diagonals, inside_polygon, robust_plane
 
 __all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "measure_single", "facet_apex_nm",
@@ -82,15 +84,9 @@ class SingleImprint:
 # ----------------------------------------------------------------------------- levelling
 
 FLOOR_MISFIT_NM = 2.0
-CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 
 
 # ----------------------------------------------------------------------------- measuring
-
-def _bilinear(img, r, c, order=1, prefilter=True):
-    return ndimage.map_coordinates(img, [np.atleast_1d(r), np.atleast_1d(c)], order=order, mode="nearest",
-                                   prefilter=prefilter)
-
 
 def _floor(zr, zs, pit, noise=None):
     """Floor (row, col, height nm): 2-D quadratic fitted to the raw heights about the smoothed minimum.
@@ -165,92 +161,11 @@ def _boundary(zb, level, inside_rc):
         best_cut = True
     cut = best_cut
     gr, gc = np.gradient(zb)
-    g_r, g_c = _bilinear(gr, best[:, 0], best[:, 1]), _bilinear(gc, best[:, 0], best[:, 1])
+    g_r, g_c = bilinear(gr, best[:, 0], best[:, 1]), bilinear(gc, best[:, 0], best[:, 1])
     g2 = np.maximum(g_r ** 2 + g_c ** 2, 1e-12)
     step = -level / g2                                     # move to where zb would reach 0
     step = np.clip(step, -2.0 / np.sqrt(g2), 2.0 / np.sqrt(g2))
     return best + np.column_stack([g_r * step, g_c * step]), cut
-
-
-def _valley_crossing(zr, rc0, e, length, slope_floor, noise):
-    """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
-
-    The pixels of the last 9 px before the coarse corner (``length``), within 3 px of the ray and below
-    the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
-    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses 0 at the
-    corner. Fitted to the pixels themselves: an interpolated profile along the valley rounds its kink and
-    reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg.
-    Returns None when the pixels do not carry such a fit.
-    """
-    ny, nx = zr.shape
-    lo = np.floor(np.minimum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) - 4).astype(int)
-    hi = np.ceil(np.maximum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) + 5).astype(int)
-    lo, hi = np.maximum(lo, 0), np.minimum(hi, [ny, nx])
-    rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
-    rel = np.column_stack([rr.ravel() - rc0[0], cc.ravel() - rc0[1]])
-    s = rel @ e
-    t = rel @ np.array([-e[1], e[0]])
-    z = zr[rr, cc].ravel()
-    use = (s > length - 9) & (s < length + 0.5) & (np.abs(t) < np.minimum(3.0, length - s + 0.5)) \
-        & np.isfinite(z) & (z < -max(3 * noise, 1.5 * slope_floor))
-    if use.sum() < 15:
-        return None
-    s, t, z = s[use], t[use], z[use]
-    k = _v_fit(s - length, t, z)
-    if k is None:
-        return None
-    # a crack running down the valley: a narrow groove under the V; its pixels left out, refitted
-    res = z - (k[0] + k[1] * (s - length) + k[2] * np.abs(t - k[4]) + k[3] * (t - k[4]))
-    deep = res < -max(4.0 * noise, 3.0, 3.0 * 1.4826 * np.median(np.abs(res)))
-    if deep.any() and (~deep).sum() >= 15:
-        k = _v_fit(s[~deep] - length, t[~deep], z[~deep])
-        if k is None:
-            return None
-    if not (k[1] > 0.2 * slope_floor and k[2] > 0):
-        return None
-    at = length - k[0] / k[1]
-    return at if abs(at - length) <= 2.5 else None
-
-
-def _v_fit(s, t, z):
-    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid: (a, b, c, f, t0)."""
-    # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
-    t0 = np.arange(-0.75, 0.76, 0.05)[:, None]
-    a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s, (len(t0), len(s))),
-                  np.abs(t - t0), t - t0], axis=-1)
-    ata = np.einsum("kni,knj->kij", a, a)
-    atz = np.einsum("kni,n->ki", a, z)
-    try:
-        k_all = np.linalg.solve(ata, atz[..., None])[..., 0]
-    except np.linalg.LinAlgError:
-        return None
-    j = int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))
-    return np.append(k_all[j], t0[j, 0])
-
-
-def _corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
-    """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
-
-    ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``); ``zr``: the
-    levelled heights themselves.
-
-    The ray is aimed along the valley between the two facets; the corner (where the valley meets the
-    original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
-    Where that fit fails, a straight line through the interpolated profile of the last few pixels before
-    the coarse corner gives it.
-    """
-    v = np.asarray(rc1, float) - rc0
-    length = float(np.hypot(*v))
-    if length < 4:
-        return np.asarray(rc1, float)
-    e = _aim_at_valley(zc, rc0, v / length, length)
-    at = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
-    if at is not None:
-        return rc0 + at * e
-    s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
-    if s0 is not None:
-        return rc0 + s0 * e
-    return np.asarray(rc1, float)
 
 
 def _diagonal_angle(zs, pit, depth_nm, n_corners):
@@ -269,66 +184,6 @@ def _diagonal_angle(zs, pit, depth_nm, n_corners):
     if not abs(acc) > 0:
         return None
     return float(np.angle(acc) / n_corners + np.pi / n_corners)
-
-
-def _aim_at_valley(zc, rc0, e, length):
-    """Direction from ``rc0`` along the valley: aimed twice at the lowest point across the ray 5 px
-    before ``length``."""
-    nrm = np.array([-e[1], e[0]])
-    for _ in range(2):
-        tt = np.arange(-3.0, 3.01, 0.25)
-        q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
-        pv = _bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
-        j = int(np.argmin(pv))
-        if 0 < j < len(tt) - 1:
-            den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
-            tj = tt[j] + (0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0)
-            v = (length - 5.0) * e + tj * nrm
-            e = v / np.hypot(*v)
-            nrm = np.array([-e[1], e[0]])
-    return e
-
-
-def _profile_crossing(zc, rc0, e, length, slope_floor, noise):
-    """Where a line through the interpolated profile of the last 9 px before ``length`` crosses 0, or None."""
-    s = np.arange(length - 9.0, length + 3.0, 0.25)
-    pts = rc0 + s[:, None] * e
-    ny, nx = zc.shape
-    inb = (pts[:, 0] >= 0) & (pts[:, 0] <= ny - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= nx - 1)
-    p = _bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
-    # the straight part of the profile: clear of the noise and of the kink at the surface level
-    use = inb & (p < -max(3 * noise, 1.5 * slope_floor)) & (s < length + 0.5) & np.isfinite(p)
-    if use.sum() < 6:
-        return None
-    k = np.polyfit(s[use], p[use], 1)
-    if k[0] <= 0.2 * slope_floor:
-        return None
-    s0 = -k[1] / k[0]
-    return s0 if abs(s0 - length) <= 2.5 else None
-
-
-def _fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
-    """Fill narrow grooves (radial cracks, scratches): heights, filled mask.
-
-    A grey closing with a disc of ``radius_px`` lifts a groove to its banks. A groove is where it lifts
-    the map by more than max(5 noise levels, 3 nm, a facet slope) with the banks at the original level
-    (within max(5 noise levels, 3 nm) of 0; the valleys' last pixels at the corners are lifted by less
-    than a slope), or, in the upper half of the imprint (the closed surface above half the depth ``depth_nm``), by
-    more than 2.5 facet slopes (``slope_px``, nm per pixel): the closing lifts the valley between two facets
-    by at most two of its slopes, so the imprint itself is left as it is (and its floor, which a closing
-    rounds, is no crack).
-    """
-    r = int(np.ceil(radius_px))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disc = yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
-    closed = ndimage.grey_closing(zr, footprint=disc, mode="nearest")
-    tol = max(5.0 * noise, 3.0)
-    lift = closed - zr
-    groove = ((lift > max(tol, slope_px)) & (np.abs(closed) <= tol)) \
-        | ((lift > max(tol, CRACK_LIFT_SLOPES * slope_px)) & (closed > -0.5 * depth_nm))
-    if not groove.any():
-        return zr, groove
-    return np.where(groove, closed, zr), groove
 
 
 #: longest run of missing pixels along a column (scan lines left out) filled before the measurement
@@ -424,7 +279,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # would put the boundary up to half a pixel out)
     slope_px = depth / max(np.sqrt(pit.sum() / 2.0), 1.0)            # nm per pixel on the facets
     # radial cracks from the corners (glass) would carry the boundary and the corners out along them
-    zr, groove = _fill_cracks(zr, noise, slope_px, depth)
+    zr, groove = fill_cracks(zr, noise, slope_px, depth)
     if groove.any():
         zs = ndimage.gaussian_filter(zr, 1.0)
     zb = ndimage.gaussian_filter(zr, 0.7)
@@ -442,8 +297,12 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     theta = _diagonal_angle(zs, pit, depth, nc)
     if theta is None:
         theta = np.angle(np.sum(rad ** 8 * np.exp(1j * nc * ang))) / nc
-    corners = []
+    corners, tongues = [], []
     zc = ndimage.spline_filter(zr, order=3, mode="nearest")           # cubic coefficients, once per imprint
+    inside = inside_polygon(cont[:, 0], cont[:, 1], zr.shape)
+    low = np.unravel_index(int(np.argmin(np.where(pit, zs, np.inf))), zs.shape)     # the smoothed floor
+    half_pts = region_pts(zs, -0.5 * depth, low)
+    flat_pts = region_pts(zs, float(zs[low]) + max(3.0 * noise, 1.0), low)
     for j in range(nc):
         phi = theta + 2 * np.pi * j / nc
         e = np.array([np.sin(phi), np.cos(phi)])            # (row, col) of the diagonal direction
@@ -457,8 +316,21 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
             return None
         proj = rel[sec] @ e
         coarse = cont_rc[sec][int(np.argmax(proj))]
-        corners.append(_corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise, zr)
-                       + [r0, c0])
+        on_ray, v_slope = corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise, zr)
+        # a V as steep as the facets ends there: the valley's own end, no crack's
+        if half_pts is not None and flat_pts is not None and not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:
+            on_ray, tongue = unless_crack(zc, zr, inside, half_pts, flat_pts.mean(axis=0), phi, nc, on_ray,
+                                           slope_px, noise)
+            tongues += [tongue] if tongue else []
+        corners.append(on_ray + [r0, c0])
+    if tongues:
+        # the cracks' tongues are no part of the contact area (and one that ran to the border cuts no imprint):
+        # the boundary found again with them lifted out of the way
+        zb = np.where(tongue_mask(zr.shape, tongues, nc), abs(level), zb)
+        cont2, cut2 = _boundary(zb, level, np.array([fr, fc]) - [r0, c0])
+        if cont2 is not None:
+            cont, cut, cont_rc = cont2, cut2, cont2 + [r0, c0]
+            inside = inside_polygon(cont[:, 0], cont[:, 1], zr.shape)
     corners_rc = np.array(corners)
     corners_um = corners_rc[:, ::-1] * pixel_um
     outside = np.any((corners_rc < -0.5) | (corners_rc > np.array([ny, nx]) - 0.5))
@@ -484,8 +356,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         sel = (np.abs(t - 0.5) < 0.05) & (np.abs(off) < 0.3 * ln)
         if sel.any():
             bows[j] = float(np.median(off[sel])) / (d_um / 2)
-    # pile-up outside the contact boundary
-    inside = inside_polygon(cont[:, 0], cont[:, 1], zr.shape)         # pixel centres inside the boundary
+    # pile-up outside the contact boundary (``inside``: pixel centres inside the boundary)
     outer = fin & ~inside & (zs > max(3 * noise, 1.0))
     pileup = float(zs[fin & ~inside].max()) if (fin & ~inside).any() else float("nan")
     vol = float(zr[outer].sum() * pixel_um * pixel_um * 1e-3)

@@ -171,7 +171,7 @@ def test_profile_crossing_where_the_valley_fit_fails():
     """The fallback corner (a line through the interpolated profile before the coarse corner): on a ramp of
     40 nm/px meeting the surface at column 80.3, with the coarse corner 1.7 px beyond, it crosses at 80.3."""
     from scipy import ndimage
-    from markcal.stages.indent_single import _profile_crossing
+    from markcal.stages.indent_corners import _profile_crossing
     cc = np.mgrid[0:60, 0:120][1].astype(float)
     z = np.minimum(40.0 * (cc - 80.3), 0.0)
     zc = ndimage.spline_filter(z, order=3, mode="nearest")

@@ -1,0 +1,300 @@
+"""Corners of a single imprint on an AFM height map: where each valley between two facets meets the
+original surface, and radial cracks that would carry a corner out along them.
+
+- :func:`fill_cracks`: narrow grooves (cracks, scratches) lifted to their banks before the boundary is found;
+- :func:`corner_on_ray`: a coarse corner (the contact boundary's extreme point along a diagonal) refined to
+  where a V fitted to the valley's own pixels crosses the surface level;
+- :func:`unless_crack`: the corner taken back to the valley's own end when the boundary ran out along a crack
+  wider than the fill (a narrow tongue), traced out along the valley from the half-depth region;
+- :func:`tongue_mask`: the pixels of those tongues, lifted out of the contact boundary.
+
+Frame: (row, col) pixel coordinates of the map window; heights levelled (original surface at 0), nm.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+
+__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "tongue_mask", "unless_crack"]
+
+CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
+CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) along a narrow tongue: a crack ...
+TONGUE_WIDTH_FRAC = 1.0      # ... narrower a quarter of the way out than its length (a 90 deg corner: 1.5) ...
+TONGUE_REACH_FRAC = 0.3      # ... and than this fraction of the distance from the floor to where the tongue starts
+VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
+WALK_SLOPE_FRAC = 0.8        # a valley walk ends where the valley rises at under this fraction of its first slope
+
+
+def bilinear(img, r, c, order=1, prefilter=True):
+    return ndimage.map_coordinates(img, [np.atleast_1d(r), np.atleast_1d(c)], order=order, mode="nearest",
+                                   prefilter=prefilter)
+
+
+def _disc(radius_px):
+    r = int(np.ceil(radius_px))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    return yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
+
+
+def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5, with_slope=False):
+    """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
+
+    The pixels of the last 9 px before the coarse corner (``length``), within 3 px of the ray and below
+    the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
+    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses 0 at the
+    corner. Fitted to the pixels themselves: an interpolated profile along the valley rounds its kink and
+    reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg.
+    Returns None when the pixels do not carry such a fit or the crossing lies more than ``reach`` px from
+    ``length``; with ``with_slope``, (crossing, the valley's slope in nm per px).
+    """
+    ny, nx = zr.shape
+    lo = np.floor(np.minimum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) - 4).astype(int)
+    hi = np.ceil(np.maximum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) + 5).astype(int)
+    lo, hi = np.maximum(lo, 0), np.minimum(hi, [ny, nx])
+    rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
+    rel = np.column_stack([rr.ravel() - rc0[0], cc.ravel() - rc0[1]])
+    s = rel @ e
+    t = rel @ np.array([-e[1], e[0]])
+    z = zr[rr, cc].ravel()
+    use = (s > length - 9) & (s < length + 0.5) & (np.abs(t) < np.minimum(3.0, length - s + 0.5)) \
+        & np.isfinite(z) & (z < -max(3 * noise, 1.5 * slope_floor))
+    if use.sum() < 15:
+        return None
+    s, t, z = s[use], t[use], z[use]
+    k = _v_fit(s - length, t, z)
+    if k is None:
+        return None
+    # a crack running down the valley: a narrow groove under the V; its pixels left out, refitted
+    res = z - (k[0] + k[1] * (s - length) + k[2] * np.abs(t - k[4]) + k[3] * (t - k[4]))
+    deep = res < -max(4.0 * noise, 3.0, 3.0 * 1.4826 * np.median(np.abs(res)))
+    if deep.any() and (~deep).sum() >= 15:
+        k = _v_fit(s[~deep] - length, t[~deep], z[~deep])
+        if k is None:
+            return None
+    if not (k[1] > 0.2 * slope_floor and k[2] > 0):
+        return None
+    at = length - k[0] / k[1]
+    if not abs(at - length) <= reach:
+        return None
+    return (at, float(k[1])) if with_slope else at
+
+
+def _v_fit(s, t, z):
+    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid: (a, b, c, f, t0)."""
+    # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
+    t0 = np.arange(-0.75, 0.76, 0.05)[:, None]
+    a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s, (len(t0), len(s))),
+                  np.abs(t - t0), t - t0], axis=-1)
+    ata = np.einsum("kni,knj->kij", a, a)
+    atz = np.einsum("kni,n->ki", a, z)
+    try:
+        k_all = np.linalg.solve(ata, atz[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    j = int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))
+    return np.append(k_all[j], t0[j, 0])
+
+
+def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
+    """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
+
+    ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``); ``zr``: the
+    levelled heights themselves.
+
+    The ray is aimed along the valley between the two facets; the corner (where the valley meets the
+    original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
+    Where that fit fails, a straight line through the interpolated profile of the last few pixels before
+    the coarse corner gives it. Returns the corner (row, col) and the V's slope along the valley (nm per px;
+    None without the V).
+    """
+    v = np.asarray(rc1, float) - rc0
+    length = float(np.hypot(*v))
+    if length < 4:
+        return np.asarray(rc1, float), None
+    e = _aim_at_valley(zc, rc0, v / length, length)
+    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, with_slope=True)
+    if fit is not None:
+        return rc0 + fit[0] * e, fit[1]
+    s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
+    corner = rc0 + s0 * e if s0 is not None else np.asarray(rc1, float)
+    return corner, None
+
+
+def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=12.0,
+                 quit_beyond=None):
+    """Corner on the valley from ``rc0`` along ``e``, found by tracing the valley out from ``start`` (px).
+
+    Each step finds the valley's bottom (the lowest point across) ``back_px`` and 3 px behind the current
+    point, fits the valley's V (:func:`_valley_crossing`) to the last pixels before the point along the line
+    through those two, and moves to where it crosses the surface level: by at most ``max_step`` px, never
+    beyond ``stop`` along ``e``. The line follows the valley itself, which need not pass through ``rc0``. The
+    walk ends where the V rises at under ``WALK_SLOPE_FRAC`` of the slope of its first fit (a crack, which
+    runs on at a nearly constant depth). Returns (row, col), or None when the first fit already crosses the
+    level ``quit_beyond`` px or more along ``e`` (nothing to walk: the valley runs straight to the corner).
+    """
+    rc0 = np.asarray(rc0, float)
+    e = _aim_at_valley(zc, rc0, e, start)
+    pos = rc0 + float(start) * e
+    u, slope0 = e, None
+    for _ in range(n_steps):
+        a = _lowest_across(zc, pos - back_px * u, u)
+        b = _lowest_across(zc, pos - 3.0 * u, u)
+        if np.hypot(*(b - a)) > 0.5 * back_px:
+            u = (b - a) / np.hypot(*(b - a))
+        base = b - 20.0 * u
+        length = float((pos - base) @ u)
+        fit = _valley_crossing(zr, base, u, length, slope_floor, noise, reach=np.inf, with_slope=True)
+        if fit is None:
+            break
+        at, slope = fit
+        if slope0 is None and quit_beyond is not None and (base + at * u - rc0) @ e >= quit_beyond:
+            return None
+        slope0 = slope if slope0 is None else slope0
+        if slope < WALK_SLOPE_FRAC * slope0:
+            break
+        step = float(np.clip(at - length, -max_step, max_step))
+        if abs(step) < 0.1 or (pos - rc0) @ e >= stop:
+            break
+        pos = base + (length + step) * u
+        over = (pos - rc0) @ e - stop
+        if over > 0:
+            pos = pos - over / max(float(u @ e), 0.5) * u
+    return pos
+
+
+def _lowest_across(zc, p, u, half_px=3.0):
+    """The lowest point (row, col) of the cubic surface ``zc`` on the segment across ``u`` through ``p``."""
+    nrm = np.array([-u[1], u[0]])
+    tt = np.arange(-half_px, half_px + 0.01, 0.25)
+    q = p + tt[:, None] * nrm
+    pv = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
+    j = int(np.argmin(pv))
+    tj = tt[j]
+    if 0 < j < len(tt) - 1:
+        den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
+        tj += 0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0
+    return p + tj * nrm
+
+
+def region_pts(zs, level, rc):
+    """(row, col) of the pixels of the region below ``level`` that holds pixel ``rc``, or None."""
+    lab, _ = ndimage.label(zs < level)
+    k = lab[int(round(rc[0])), int(round(rc[1]))]
+    return np.argwhere(lab == k).astype(float) if k else None
+
+
+def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_floor, noise):
+    """The corner ``corner`` (row, col), or the valley's own end when ``corner`` lies out along a crack; and
+    the crack's tongue (apex, e, distance of the walked corner), or None.
+
+    A crack wider than the fill (a scan's lag smears it) carries the boundary, and with it the corner, out
+    along a narrow tongue. The valley is traced out (:func:`_walk_valley`) along the diagonal ``phi`` from
+    ``apex`` (the centroid of the floor's pixels within noise of the lowest: the apex, also where the floor
+    is a clipped plateau whose lowest pixel lies anywhere), starting where the region half as deep as the
+    floor (``half_pts``; no crack goes that deep) ends. When ``corner`` lies more than ``CRACK_TONGUE_PX``
+    beyond the walk's end and the boundary's region between them is a tongue (:func:`_tongue`), the walk's
+    end is the corner.
+    """
+    hc = np.asarray(apex, float)
+    rel = half_pts - hc
+    e = np.array([np.sin(phi), np.cos(phi)])
+    sec = np.abs((np.arctan2(rel[:, 0], rel[:, 1]) - phi + np.pi) % (2 * np.pi) - np.pi) < np.pi / (3 * n_corners)
+    if not sec.any():
+        return corner, None
+    s_out = float((corner - hc) @ e)
+    walked = _walk_valley(zc, hc, e, float((rel[sec] @ e).max()), s_out, slope_floor, noise, zr,
+                          quit_beyond=s_out - CRACK_TONGUE_PX)
+    if walked is None:
+        return corner, None
+    s_in = float((walked - hc) @ e)
+    if s_out - s_in > CRACK_TONGUE_PX and _tongue(inside, hc, e, s_in, s_out):
+        return walked, (hc, e, s_in)
+    return corner, None
+
+
+def tongue_mask(shape, tongues, n_corners):
+    """Pixels beyond each crack's walked corner (tongues: apex, e, distance: :func:`unless_crack`), within
+    the quadrant about ``e``."""
+    pts = np.indices(shape).reshape(2, -1).T.astype(float)
+    mask = np.zeros(len(pts), bool)
+    for hc, e, s_in in tongues:
+        rel = pts - hc
+        turn = np.abs((np.arctan2(rel[:, 0], rel[:, 1]) - np.arctan2(e[0], e[1]) + np.pi) % (2 * np.pi) - np.pi)
+        mask |= (rel @ e > s_in + 0.5) & (turn < np.pi / n_corners)
+    return mask.reshape(shape)
+
+
+def _tongue(inside, rc0, e, s_in, s_out):
+    """Whether the region ``inside`` between ``s_in`` and ``s_out`` px from ``rc0`` along ``e`` is a narrow
+    tongue (a crack) rather than the corner itself.
+
+    A quarter of the way out it must be narrower across ``e`` than its length (a corner of 90 deg is 1.5
+    times as wide there, one with sunk-in edges 1.2-1.4 times) and than ``TONGUE_REACH_FRAC`` of ``s_in``
+    (a crack is narrow beside the imprint; a corner whose valley walk stopped short is not). Also when the
+    region does not reach that far along ``e`` at all (the corner was carried out off the diagonal).
+    """
+    pts = np.argwhere(inside) - rc0
+    s = pts @ e
+    t = pts @ np.array([-e[1], e[0]])
+    sel = (np.abs(s - (s_in + 0.25 * (s_out - s_in))) <= 1.0) & (np.abs(t) <= s_out - s_in)
+    if not sel.any():
+        return True                      # the region ends short of it: carried out off the diagonal (a chip)
+    width = t[sel].max() - t[sel].min() + 1.0
+    return bool(width < TONGUE_WIDTH_FRAC * min(s_out - s_in, TONGUE_REACH_FRAC * s_in))
+
+
+def _aim_at_valley(zc, rc0, e, length):
+    """Direction from ``rc0`` along the valley: aimed twice at the lowest point across the ray 5 px
+    before ``length``."""
+    nrm = np.array([-e[1], e[0]])
+    for _ in range(2):
+        tt = np.arange(-3.0, 3.01, 0.25)
+        q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
+        pv = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
+        j = int(np.argmin(pv))
+        if 0 < j < len(tt) - 1:
+            den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
+            tj = tt[j] + (0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0)
+            v = (length - 5.0) * e + tj * nrm
+            e = v / np.hypot(*v)
+            nrm = np.array([-e[1], e[0]])
+    return e
+
+
+def _profile_crossing(zc, rc0, e, length, slope_floor, noise):
+    """Where a line through the interpolated profile of the last 9 px before ``length`` crosses 0, or None."""
+    s = np.arange(length - 9.0, length + 3.0, 0.25)
+    pts = rc0 + s[:, None] * e
+    ny, nx = zc.shape
+    inb = (pts[:, 0] >= 0) & (pts[:, 0] <= ny - 1) & (pts[:, 1] >= 0) & (pts[:, 1] <= nx - 1)
+    p = bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
+    # the straight part of the profile: clear of the noise and of the kink at the surface level
+    use = inb & (p < -max(3 * noise, 1.5 * slope_floor)) & (s < length + 0.5) & np.isfinite(p)
+    if use.sum() < 6:
+        return None
+    k = np.polyfit(s[use], p[use], 1)
+    if k[0] <= 0.2 * slope_floor:
+        return None
+    s0 = -k[1] / k[0]
+    return s0 if abs(s0 - length) <= 2.5 else None
+
+
+def fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
+    """Fill narrow grooves (radial cracks, scratches): heights, filled mask.
+
+    A grey closing with a disc of ``radius_px`` lifts a groove to its banks. A groove is where it lifts
+    the map by more than max(5 noise levels, 3 nm, a facet slope) with the banks at the original level
+    (within max(5 noise levels, 3 nm) of 0; the valleys' last pixels at the corners are lifted by less
+    than a slope), or, in the upper half of the imprint (the closed surface above half the depth ``depth_nm``), by
+    more than 2.5 facet slopes (``slope_px``, nm per pixel): the closing lifts the valley between two facets
+    by at most two of its slopes, so the imprint itself is left as it is (and its floor, which a closing
+    rounds, is no crack).
+    """
+    closed = ndimage.grey_closing(zr, footprint=_disc(radius_px), mode="nearest")
+    tol = max(5.0 * noise, 3.0)
+    lift = closed - zr
+    groove = ((lift > max(tol, slope_px)) & (np.abs(closed) <= tol)) \
+        | ((lift > max(tol, CRACK_LIFT_SLOPES * slope_px)) & (closed > -0.5 * depth_nm))
+    if not groove.any():
+        return zr, groove
+    return np.where(groove, closed, zr), groove
