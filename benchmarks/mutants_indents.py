@@ -15,6 +15,10 @@ _MICRO = "tests/test_indent_micrograph.py::test_single_micrograph_against_truth"
 
 _SINGLE = "tests/test_indent_single.py"
 
+_WIDE = "tests/test_independent_renders.py::test_single_ruled_imprint_with_wide_radial_cracks"
+
+_FB_CRACKS = "tests/test_independent_renders.py::test_feedback_render_cracks_do_not_carry_the_corners_out"
+
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
         "name": "micrograph-inside-as-sum",
@@ -385,5 +389,47 @@ MUTANTS_INDENTS = [
         "new": "        found.append((float(score[r, c]), c, r, L))\n",
         "tests": ["tests/test_indent_micrograph.py::test_real_sem_square_search_lands_on_the_imprint",
                   "tests/test_micrograph_independent.py::test_bse_grain_contrast_square_search"],
+    },
+    {   # no crack tracing: wide cracks carry the corners out to the border (session 17)
+        "name": "single-crack-trace-skipped",
+        "file": "stages/indent_single.py",
+        "old": "        if half_pts is not None and flat_pts is not None and not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:\n",
+        "new": "        if False:\n",
+        "tests": [_WIDE, _FB_CRACKS],
+    },
+    {   # the cracks' tongues left in the boundary: area with the cracks, imprint flagged cut (session 17)
+        "name": "single-tongues-not-lifted",
+        "file": "stages/indent_single.py",
+        "old": "        zb = np.where(tongue_mask(zr.shape, tongues, nc), abs(level), zb)\n",
+        "new": "",
+        "tests": [_WIDE],
+    },
+    {   # the valley traced from the lowest pixel, not the floor's centroid (a clipped plateau; session 17)
+        "name": "corners-trace-from-lowest-pixel",
+        "file": "stages/indent_single.py",
+        "old": "flat_pts.mean(axis=0)",
+        "new": "np.array([fr - r0, fc - c0])",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
+    },
+    {   # the trace runs on into the crack (no stop where the valley's slope collapses; session 17)
+        "name": "corners-trace-no-slope-stop",
+        "file": "stages/indent_corners.py",
+        "old": "        if slope < WALK_SLOPE_FRAC * slope0:\n",
+        "new": "        if False:\n",
+        "tests": [_WIDE, _FB_CRACKS],
+    },
+    {   # any stretch beyond the traced corner taken for a crack's tongue (session 17)
+        "name": "corners-tongue-always",
+        "file": "stages/indent_corners.py",
+        "old": "    return bool(width < TONGUE_WIDTH_FRAC * min(s_out - s_in, TONGUE_REACH_FRAC * s_in))\n",
+        "new": "    return True\n",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
+    },
+    {   # the trace along rays from the apex, not anchored on the valley's bottom (session 17)
+        "name": "corners-trace-from-apex-rays",
+        "file": "stages/indent_corners.py",
+        "old": "        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e) - (back_px - 3.0) * e     # on the valley, behind\n",
+        "new": "        base = rc0 + (s - back_px) * e\n",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },
 ]

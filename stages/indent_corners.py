@@ -120,46 +120,39 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     return corner, None
 
 
-def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=12.0,
+def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=20.0,
                  quit_beyond=None):
     """Corner on the valley from ``rc0`` along ``e``, found by tracing the valley out from ``start`` (px).
 
-    Each step finds the valley's bottom (the lowest point across) ``back_px`` and 3 px behind the current
-    point, fits the valley's V (:func:`_valley_crossing`) to the last pixels before the point along the line
-    through those two, and moves to where it crosses the surface level: by at most ``max_step`` px, never
-    beyond ``stop`` along ``e``. The line follows the valley itself, which need not pass through ``rc0``. The
-    walk ends where the V rises at under ``WALK_SLOPE_FRAC`` of the slope of its first fit (a crack, which
-    runs on at a nearly constant depth). Returns (row, col), or None when the first fit already crosses the
-    level ``quit_beyond`` px or more along ``e`` (nothing to walk: the valley runs straight to the corner).
+    Each step anchors the line along ``e`` on the valley's bottom (the lowest point across, 3 px behind the
+    current point), fits the valley's V (:func:`_valley_crossing`) to the last pixels before the point and
+    moves to where it crosses the surface level: by at most ``max_step`` px, never beyond ``stop`` along
+    ``e``. Anchored so, the line keeps to the valley even where the valley does not pass through ``rc0``
+    (rays from ``rc0`` would cross it at a slant). The walk ends where the V rises at under
+    ``WALK_SLOPE_FRAC`` of the slope of its first fit (a crack, which runs on at a nearly constant depth).
+    Returns (row, col), or None when the first fit already crosses the level ``quit_beyond`` px or more
+    along ``e`` (nothing to walk: the valley runs straight to the corner).
     """
     rc0 = np.asarray(rc0, float)
     e = _aim_at_valley(zc, rc0, e, start)
-    pos = rc0 + float(start) * e
-    u, slope0 = e, None
+    s, slope0 = float(start), None
     for _ in range(n_steps):
-        a = _lowest_across(zc, pos - back_px * u, u)
-        b = _lowest_across(zc, pos - 3.0 * u, u)
-        if np.hypot(*(b - a)) > 0.5 * back_px:
-            u = (b - a) / np.hypot(*(b - a))
-        base = b - 20.0 * u
-        length = float((pos - base) @ u)
-        fit = _valley_crossing(zr, base, u, length, slope_floor, noise, reach=np.inf, with_slope=True)
+        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e) - (back_px - 3.0) * e     # on the valley, behind
+        fit = _valley_crossing(zr, base, e, back_px, slope_floor, noise, reach=np.inf, with_slope=True)
         if fit is None:
             break
         at, slope = fit
-        if slope0 is None and quit_beyond is not None and (base + at * u - rc0) @ e >= quit_beyond:
+        if slope0 is None and quit_beyond is not None and s + at - back_px >= quit_beyond:
             return None
         slope0 = slope if slope0 is None else slope0
         if slope < WALK_SLOPE_FRAC * slope0:
             break
-        step = float(np.clip(at - length, -max_step, max_step))
-        if abs(step) < 0.1 or (pos - rc0) @ e >= stop:
+        step = float(np.clip(at - back_px, -max_step, max_step))
+        if abs(step) < 0.1 or s >= stop:
             break
-        pos = base + (length + step) * u
-        over = (pos - rc0) @ e - stop
-        if over > 0:
-            pos = pos - over / max(float(u @ e), 0.5) * u
-    return pos
+        rc0 = rc0 + (base + back_px * e - (rc0 + s * e))         # the line through the valley's bottom
+        s = min(s + step, stop)
+    return rc0 + s * e
 
 
 def _lowest_across(zc, p, u, half_px=3.0):
