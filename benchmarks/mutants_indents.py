@@ -425,6 +425,13 @@ MUTANTS_INDENTS = [
         "new": "    return True\n",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },
+    {   # a boundary corner beside the valley's traced end (on a chip) kept (session 17)
+        "name": "corners-chip-corner-kept",
+        "file": "stages/indent_corners.py",
+        "old": "    if converged and np.hypot(*(walked - corner)) > CRACK_TONGUE_PX:\n",
+        "new": "    if False:\n",
+        "tests": [_FB_CRACKS],
+    },
     {   # the trace along rays from the apex, not anchored on the valley's bottom (session 17)
         "name": "corners-trace-from-apex-rays",
         "file": "stages/indent_corners.py",

@@ -120,8 +120,7 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     return corner, None
 
 
-def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=20.0,
-                 quit_beyond=None):
+def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=20.0):
     """Corner on the valley from ``rc0`` along ``e``, found by tracing the valley out from ``start`` (px).
 
     Each step anchors the line along ``e`` on the valley's bottom (the lowest point across, 3 px behind the
@@ -130,8 +129,8 @@ def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0,
     ``e``. Anchored so, the line keeps to the valley even where the valley does not pass through ``rc0``
     (rays from ``rc0`` would cross it at a slant). The walk ends where the V rises at under
     ``WALK_SLOPE_FRAC`` of the slope of its first fit (a crack, which runs on at a nearly constant depth).
-    Returns (row, col), or None when the first fit already crosses the level ``quit_beyond`` px or more
-    along ``e`` (nothing to walk: the valley runs straight to the corner).
+    Returns (row, col) and whether the walk converged (ended on a V that crosses the level where it ends,
+    rather than at ``stop``, at a collapsed slope or where no V could be fitted).
     """
     rc0 = np.asarray(rc0, float)
     e = _aim_at_valley(zc, rc0, e, start)
@@ -142,17 +141,17 @@ def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0,
         if fit is None:
             break
         at, slope = fit
-        if slope0 is None and quit_beyond is not None and s + at - back_px >= quit_beyond:
-            return None
         slope0 = slope if slope0 is None else slope0
         if slope < WALK_SLOPE_FRAC * slope0:
             break
         step = float(np.clip(at - back_px, -max_step, max_step))
-        if abs(step) < 0.1 or s >= stop:
+        if abs(step) < 0.1:
+            return rc0 + s * e, True
+        if s >= stop:
             break
         rc0 = rc0 + (base + back_px * e - (rc0 + s * e))         # the line through the valley's bottom
         s = min(s + step, stop)
-    return rc0 + s * e
+    return rc0 + s * e, False
 
 
 def _lowest_across(zc, p, u, half_px=3.0):
@@ -177,8 +176,8 @@ def region_pts(zs, level, rc):
 
 
 def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_floor, noise):
-    """The corner ``corner`` (row, col), or the valley's own end when ``corner`` lies out along a crack; and
-    the crack's tongue (apex, e, distance of the walked corner), or None.
+    """The corner ``corner`` (row, col), or the valley's own end when ``corner`` lies out along a crack or
+    beside the valley's end; and the crack's tongue (apex, e, distance of the walked corner), or None.
 
     A crack wider than the fill (a scan's lag smears it) carries the boundary, and with it the corner, out
     along a narrow tongue. The valley is traced out (:func:`_walk_valley`) along the diagonal ``phi`` from
@@ -186,7 +185,9 @@ def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_f
     is a clipped plateau whose lowest pixel lies anywhere), starting where the region half as deep as the
     floor (``half_pts``; no crack goes that deep) ends. When ``corner`` lies more than ``CRACK_TONGUE_PX``
     beyond the walk's end and the boundary's region between them is a tongue (:func:`_tongue`), the walk's
-    end is the corner.
+    end is the corner. So it is when the walk converged on a V more than ``CRACK_TONGUE_PX`` beside or beyond
+    ``corner`` (a chip spalled beside the corner carried the boundary's far point sideways; debris or
+    pile-up cut it short). The walk may go 10 % beyond ``corner``.
     """
     hc = np.asarray(apex, float)
     rel = half_pts - hc
@@ -195,13 +196,13 @@ def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_f
     if not sec.any():
         return corner, None
     s_out = float((corner - hc) @ e)
-    walked = _walk_valley(zc, hc, e, float((rel[sec] @ e).max()), s_out, slope_floor, noise, zr,
-                          quit_beyond=s_out - CRACK_TONGUE_PX)
-    if walked is None:
-        return corner, None
+    walked, converged = _walk_valley(zc, hc, e, float((rel[sec] @ e).max()), s_out + max(CRACK_TONGUE_PX, 0.1 * s_out),
+                                     slope_floor, noise, zr)
     s_in = float((walked - hc) @ e)
-    if s_out - s_in > CRACK_TONGUE_PX and _tongue(inside, hc, e, s_in, s_out):
-        return walked, (hc, e, s_in)
+    if s_out - s_in > CRACK_TONGUE_PX:
+        return (walked, (hc, e, s_in)) if _tongue(inside, hc, e, s_in, s_out) else (corner, None)
+    if converged and np.hypot(*(walked - corner)) > CRACK_TONGUE_PX:
+        return walked, None          # the boundary's corner beside (a chip) or short of the valley's own end
     return corner, None
 
 

@@ -334,10 +334,11 @@ def test_feedback_render_chip_beside_a_corner(tmp_path):
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]) and corner <= 1.5, (d, corner)
 
 
-@pytest.mark.parametrize("seed,d_tol_pct", [(7, None), (16, None), (11, 3.0), (10, 3.0)])
+@pytest.mark.parametrize("seed,d_tol_pct", [(7, None), (16, None), (15, None), (11, 3.0), (10, 3.0)])
 def test_feedback_render_cracks_do_not_carry_the_corners_out(tmp_path, seed, d_tol_pct):
     """Every artefact drawn. Seeds 7 and 16: a corner ran out along a crack or a chip beside it (d +2.4 and
-    +1.2 %); now within the rendered-imprint goal (0.5 % or 1 px). Seed 11 (89 % fill, cracks smeared wide by
+    +1.2 %); seed 15: two corners sat on chips beside them, 14 and 21 px off the valleys' ends (d +2.1 %).
+    Now within the rendered-imprint goal (0.5 % or 1 px). Seed 11 (89 % fill, cracks smeared wide by
     the z loop's lag, two running to the border): d +19 % before session 17; held to the real-map goal
     (3 %), its surroundings being mis-levelled by tens of nm. Seed 10 (+0.9 %): a corner whose valley
     trace stops short on its convex facets is no crack (the region there is as wide as a corner's); taken
