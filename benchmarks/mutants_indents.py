@@ -425,6 +425,20 @@ MUTANTS_INDENTS = [
         "new": "    return True\n",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },
+    {   # the corners' V within 3 px of the diagonal only: a sunk-in corner's cusp read short (session 17)
+        "name": "corners-v-narrow",
+        "file": "stages/indent_corners.py",
+        "old": "    for half in (V_WIDE_PX, 3.0):\n",
+        "new": "    for half in (3.0,):\n",
+        "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_with_strongly_sunk_in_edges"],
+    },
+    {   # the wide V kept where a crack runs down the valley (session 17)
+        "name": "corners-v-wide-in-cracks",
+        "file": "stages/indent_corners.py",
+        "old": "    for half in (V_WIDE_PX, 3.0):\n",
+        "new": "    for half in (V_WIDE_PX,):\n",
+        "tests": [_WIDE],
+    },
     {   # a boundary corner beside the valley's traced end (on a chip) kept (session 17)
         "name": "corners-chip-corner-kept",
         "file": "stages/indent_corners.py",

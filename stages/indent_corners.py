@@ -22,6 +22,7 @@ CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) along
 TONGUE_WIDTH_FRAC = 1.0      # ... narrower a quarter of the way out than its length (a 90 deg corner: 1.5) ...
 TONGUE_REACH_FRAC = 0.3      # ... and than this fraction of the distance from the floor to where the tongue starts
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
+V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
 WALK_SLOPE_FRAC = 0.8        # a valley walk ends where the valley rises at under this fraction of its first slope
 
 
@@ -39,34 +40,44 @@ def _disc(radius_px):
 def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5, with_slope=False):
     """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
 
-    The pixels of the last 9 px before the coarse corner (``length``), within 3 px of the ray and below
-    the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
+    The pixels of the last 9 px before the coarse corner (``length``), within ``V_WIDE_PX`` of the ray and
+    below the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
     t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses 0 at the
     corner. Fitted to the pixels themselves: an interpolated profile along the valley rounds its kink and
-    reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg.
+    reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg. Within 3 px only, the V of a
+    corner whose edges sink in (a cusp) comes out too shallow (corners 0.3-1 px short at bows of -7 %); but
+    where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
+    takes in less of the crack.
     Returns None when the pixels do not carry such a fit or the crossing lies more than ``reach`` px from
     ``length``; with ``with_slope``, (crossing, the valley's slope in nm per px).
     """
     ny, nx = zr.shape
-    lo = np.floor(np.minimum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) - 4).astype(int)
-    hi = np.ceil(np.maximum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) + 5).astype(int)
+    pad = np.ceil(V_WIDE_PX) + 1
+    lo = np.floor(np.minimum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) - pad).astype(int)
+    hi = np.ceil(np.maximum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) + pad + 1).astype(int)
     lo, hi = np.maximum(lo, 0), np.minimum(hi, [ny, nx])
     rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
     rel = np.column_stack([rr.ravel() - rc0[0], cc.ravel() - rc0[1]])
-    s = rel @ e
-    t = rel @ np.array([-e[1], e[0]])
-    z = zr[rr, cc].ravel()
-    use = (s > length - 9) & (s < length + 0.5) & (np.abs(t) < np.minimum(3.0, length - s + 0.5)) \
-        & np.isfinite(z) & (z < -max(3 * noise, 1.5 * slope_floor))
-    if use.sum() < 15:
-        return None
-    s, t, z = s[use], t[use], z[use]
-    k = _v_fit(s - length, t, z)
-    if k is None:
-        return None
-    # a crack running down the valley: a narrow groove under the V; its pixels left out, refitted
-    res = z - (k[0] + k[1] * (s - length) + k[2] * np.abs(t - k[4]) + k[3] * (t - k[4]))
-    deep = res < -max(4.0 * noise, 3.0, 3.0 * 1.4826 * np.median(np.abs(res)))
+    s_all = rel @ e
+    t_all = rel @ np.array([-e[1], e[0]])
+    z_all = zr[rr, cc].ravel()
+    below = (s_all > length - 9) & (s_all < length + 0.5) & np.isfinite(z_all) \
+        & (z_all < -max(3 * noise, 1.5 * slope_floor))
+    # the V over V_WIDE_PX across (a cusp's V, where the edges sink in, is too shallow within 3 px), or over
+    # 3 px where a crack runs down the valley (the wider V takes in more of it)
+    for half in (V_WIDE_PX, 3.0):
+        use = below & (np.abs(t_all) < np.minimum(half, length - s_all + 0.5))
+        if use.sum() < 15:
+            return None
+        s, t, z = s_all[use], t_all[use], z_all[use]
+        k = _v_fit(s - length, t, z)
+        if k is None:
+            return None
+        # a crack running down the valley: a narrow groove under the V; its pixels left out, refitted
+        res = z - (k[0] + k[1] * (s - length) + k[2] * np.abs(t - k[4]) + k[3] * (t - k[4]))
+        deep = res < -max(4.0 * noise, 3.0, 3.0 * 1.4826 * np.median(np.abs(res)))
+        if not deep.any():
+            break
     if deep.any() and (~deep).sum() >= 15:
         k = _v_fit(s[~deep] - length, t[~deep], z[~deep])
         if k is None:

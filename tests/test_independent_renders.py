@@ -228,6 +228,16 @@ def test_single_ruled_imprint_with_radial_cracks(tmp_path):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
+def test_single_ruled_imprint_with_strongly_sunk_in_edges(tmp_path):
+    """Unseen seed 127: edges sunk in by 6.4-7.4 % of d/2 make each corner a cusp. The corners' V, fitted
+    within 3 px of the diagonal, came out too shallow and every corner 0.3-0.8 px short: d -1.22 px (goal
+    1 px). Fitted within 5 px (3 px where a crack runs down the valley). Tolerances: the single-imprint
+    goals."""
+    r = render_single_ruled(127, size_px=256)
+    gsf, _ = write_single_ruled(r, str(tmp_path), "map")
+    _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
+
+
 @pytest.mark.parametrize("seed", [4, 8])
 def test_single_ruled_imprint_with_wide_radial_cracks(tmp_path, seed):
     """Cracks of 4-7 px FWHM and 100 nm (a scan's lag widens a crack's trace beyond the fill's 5 px disc) from
