@@ -393,7 +393,7 @@ MUTANTS_INDENTS = [
     {   # no crack tracing: wide cracks carry the corners out to the border (session 17)
         "name": "single-crack-trace-skipped",
         "file": "stages/indent_single.py",
-        "old": "        if half_pts is not None and flat_pts is not None and not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:\n",
+        "old": "        if not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:\n",
         "new": "        if False:\n",
         "tests": [_WIDE, _FB_CRACKS],
     },
@@ -407,8 +407,8 @@ MUTANTS_INDENTS = [
     {   # the valley traced from the lowest pixel, not the floor's centroid (a clipped plateau; session 17)
         "name": "corners-trace-from-lowest-pixel",
         "file": "stages/indent_single.py",
-        "old": "flat_pts.mean(axis=0)",
-        "new": "np.array([fr - r0, fc - c0])",
+        "old": "None if flat is None else flat.mean(axis=0)",
+        "new": "np.asarray(low, float)",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },
     {   # the trace runs on into the crack (no stop where the valley's slope collapses; session 17)
@@ -449,7 +449,7 @@ MUTANTS_INDENTS = [
     {   # the trace along rays from the apex, not anchored on the valley's bottom (session 17)
         "name": "corners-trace-from-apex-rays",
         "file": "stages/indent_corners.py",
-        "old": "        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e) - (back_px - 3.0) * e     # on the valley, behind\n",
+        "old": "        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e)[0] - (back_px - 3.0) * e  # on the valley, behind\n",
         "new": "        base = rc0 + (s - back_px) * e\n",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },

@@ -31,13 +31,7 @@ def bilinear(img, r, c, order=1, prefilter=True):
                                    prefilter=prefilter)
 
 
-def _disc(radius_px):
-    r = int(np.ceil(radius_px))
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    return yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
-
-
-def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5, with_slope=False):
+def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5):
     """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
 
     The pixels of the last 9 px before the coarse corner (``length``), within ``V_WIDE_PX`` of the ray and
@@ -48,8 +42,8 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5, with_slo
     corner whose edges sink in (a cusp) comes out too shallow (corners 0.3-1 px short at bows of -7 %); but
     where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
     takes in less of the crack.
-    Returns None when the pixels do not carry such a fit or the crossing lies more than ``reach`` px from
-    ``length``; with ``with_slope``, (crossing, the valley's slope in nm per px).
+    Returns (crossing, the valley's slope in nm per px), or None when the pixels do not carry such a fit or
+    the crossing lies more than ``reach`` px from ``length``.
     """
     ny, nx = zr.shape
     pad = np.ceil(V_WIDE_PX) + 1
@@ -87,7 +81,7 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5, with_slo
     at = length - k[0] / k[1]
     if not abs(at - length) <= reach:
         return None
-    return (at, float(k[1])) if with_slope else at
+    return at, float(k[1])
 
 
 def _v_fit(s, t, z):
@@ -123,7 +117,7 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     if length < 4:
         return np.asarray(rc1, float), None
     e = _aim_at_valley(zc, rc0, v / length, length)
-    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, with_slope=True)
+    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
     if fit is not None:
         return rc0 + fit[0] * e, fit[1]
     s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
@@ -147,8 +141,8 @@ def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0,
     e = _aim_at_valley(zc, rc0, e, start)
     s, slope0 = float(start), None
     for _ in range(n_steps):
-        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e) - (back_px - 3.0) * e     # on the valley, behind
-        fit = _valley_crossing(zr, base, e, back_px, slope_floor, noise, reach=np.inf, with_slope=True)
+        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e)[0] - (back_px - 3.0) * e  # on the valley, behind
+        fit = _valley_crossing(zr, base, e, back_px, slope_floor, noise, reach=np.inf)
         if fit is None:
             break
         at, slope = fit
@@ -166,17 +160,24 @@ def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0,
 
 
 def _lowest_across(zc, p, u, half_px=3.0):
-    """The lowest point (row, col) of the cubic surface ``zc`` on the segment across ``u`` through ``p``."""
+    """The lowest point (row, col) of the cubic surface ``zc`` on the segment across ``u`` through ``p``
+    (refined by a parabola), and whether it lies inside the segment rather than at one of its ends."""
     nrm = np.array([-u[1], u[0]])
     tt = np.arange(-half_px, half_px + 0.01, 0.25)
     q = p + tt[:, None] * nrm
     pv = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
     j = int(np.argmin(pv))
     tj = tt[j]
-    if 0 < j < len(tt) - 1:
+    interior = 0 < j < len(tt) - 1
+    if interior:
         den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
         tj += 0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0
-    return p + tj * nrm
+    return p + tj * nrm, interior
+
+
+def _turn(rel, phi):
+    """Angle (rad, 0-pi) between the directions of ``rel`` (rows of (row, col)) and the direction ``phi``."""
+    return np.abs((np.arctan2(rel[:, 0], rel[:, 1]) - phi + np.pi) % (2 * np.pi) - np.pi)
 
 
 def region_pts(zs, level, rc):
@@ -203,7 +204,7 @@ def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_f
     hc = np.asarray(apex, float)
     rel = half_pts - hc
     e = np.array([np.sin(phi), np.cos(phi)])
-    sec = np.abs((np.arctan2(rel[:, 0], rel[:, 1]) - phi + np.pi) % (2 * np.pi) - np.pi) < np.pi / (3 * n_corners)
+    sec = _turn(rel, phi) < np.pi / (3 * n_corners)
     if not sec.any():
         return corner, None
     s_out = float((corner - hc) @ e)
@@ -224,8 +225,7 @@ def tongue_mask(shape, tongues, n_corners):
     mask = np.zeros(len(pts), bool)
     for hc, e, s_in in tongues:
         rel = pts - hc
-        turn = np.abs((np.arctan2(rel[:, 0], rel[:, 1]) - np.arctan2(e[0], e[1]) + np.pi) % (2 * np.pi) - np.pi)
-        mask |= (rel @ e > s_in + 0.5) & (turn < np.pi / n_corners)
+        mask |= (rel @ e > s_in + 0.5) & (_turn(rel, np.arctan2(e[0], e[1])) < np.pi / n_corners)
     return mask.reshape(shape)
 
 
@@ -251,18 +251,10 @@ def _tongue(inside, rc0, e, s_in, s_out):
 def _aim_at_valley(zc, rc0, e, length):
     """Direction from ``rc0`` along the valley: aimed twice at the lowest point across the ray 5 px
     before ``length``."""
-    nrm = np.array([-e[1], e[0]])
     for _ in range(2):
-        tt = np.arange(-3.0, 3.01, 0.25)
-        q = rc0 + (length - 5.0) * e + tt[:, None] * nrm
-        pv = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
-        j = int(np.argmin(pv))
-        if 0 < j < len(tt) - 1:
-            den = pv[j - 1] - 2 * pv[j] + pv[j + 1]
-            tj = tt[j] + (0.5 * 0.25 * (pv[j - 1] - pv[j + 1]) / den if den > 0 else 0.0)
-            v = (length - 5.0) * e + tj * nrm
-            e = v / np.hypot(*v)
-            nrm = np.array([-e[1], e[0]])
+        low, interior = _lowest_across(zc, rc0 + (length - 5.0) * e, e)
+        if interior:
+            e = (low - rc0) / np.hypot(*(low - rc0))
     return e
 
 
@@ -295,7 +287,10 @@ def fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
     by at most two of its slopes, so the imprint itself is left as it is (and its floor, which a closing
     rounds, is no crack).
     """
-    closed = ndimage.grey_closing(zr, footprint=_disc(radius_px), mode="nearest")
+    r = int(np.ceil(radius_px))
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disc = yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
+    closed = ndimage.grey_closing(zr, footprint=disc, mode="nearest")
     tol = max(5.0 * noise, 3.0)
     lift = closed - zr
     groove = ((lift > max(tol, slope_px)) & (np.abs(closed) <= tol)) \

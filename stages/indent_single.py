@@ -168,6 +168,15 @@ def _boundary(zb, level, inside_rc):
     return best + np.column_stack([g_r * step, g_c * step]), cut
 
 
+def _trace_from(zs, pit, depth_nm, noise):
+    """Where a valley trace starts (:func:`unless_crack`): the pixels of the region half as deep as the floor,
+    and the apex, the centroid of the floor's pixels within noise of the lowest (also where the floor is a
+    clipped plateau); None for either that the smoothed floor does not lie in."""
+    low = np.unravel_index(int(np.argmin(np.where(pit, zs, np.inf))), zs.shape)
+    flat = region_pts(zs, float(zs[low]) + max(3.0 * noise, 1.0), low)
+    return region_pts(zs, -0.5 * depth_nm, low), None if flat is None else flat.mean(axis=0)
+
+
 def _diagonal_angle(zs, pit, depth_nm, n_corners):
     """Direction (rad, atan2(row, col)) of a diagonal from the facets' slopes inside the imprint, or None.
 
@@ -300,9 +309,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     corners, tongues = [], []
     zc = ndimage.spline_filter(zr, order=3, mode="nearest")           # cubic coefficients, once per imprint
     inside = inside_polygon(cont[:, 0], cont[:, 1], zr.shape)
-    low = np.unravel_index(int(np.argmin(np.where(pit, zs, np.inf))), zs.shape)     # the smoothed floor
-    half_pts = region_pts(zs, -0.5 * depth, low)
-    flat_pts = region_pts(zs, float(zs[low]) + max(3.0 * noise, 1.0), low)
+    trace = None                 # (half-depth region, apex) for the crack check: found when first needed
     for j in range(nc):
         phi = theta + 2 * np.pi * j / nc
         e = np.array([np.sin(phi), np.cos(phi)])            # (row, col) of the diagonal direction
@@ -318,10 +325,11 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         coarse = cont_rc[sec][int(np.argmax(proj))]
         on_ray, v_slope = corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise, zr)
         # a V as steep as the facets ends there: the valley's own end, no crack's
-        if half_pts is not None and flat_pts is not None and not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:
-            on_ray, tongue = unless_crack(zc, zr, inside, half_pts, flat_pts.mean(axis=0), phi, nc, on_ray,
-                                           slope_px, noise)
-            tongues += [tongue] if tongue else []
+        if not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:
+            trace = trace or _trace_from(zs, pit, depth, noise)
+            if trace[0] is not None and trace[1] is not None:
+                on_ray, tongue = unless_crack(zc, zr, inside, trace[0], trace[1], phi, nc, on_ray, slope_px, noise)
+                tongues += [tongue] if tongue else []
         corners.append(on_ray + [r0, c0])
     if tongues:
         # the cracks' tongues are no part of the contact area (and one that ran to the border cuts no imprint):
