@@ -407,6 +407,20 @@ def test_real_maps_keep_every_line_and_hold_no_imprint(rel, tmp_path, capsys):
     assert not os.path.exists(os.path.join(out, "summary.json"))
 
 
+def test_real_grating_pits_through_the_crack_check(tmp_path, capsys, monkeypatch):
+    """The real grating grid1.nid (square pits, no imprint: realdata README) takes the session 17 crack
+    check (valley traced, tongues tested) on its pits' corners, and still holds no imprint: one line, exit 1."""
+    from markcal.stages import indent_single
+    calls = []
+    check = indent_single.unless_crack
+    monkeypatch.setattr(indent_single, "unless_crack", lambda *a: calls.append(1) or check(*a))
+    path = _real("afm/nanosurf_nid/grid1.nid")
+    assert main(["indents", path, "--out", str(tmp_path / "out"), "--quiet"]) == 1
+    assert calls                                   # the check ran on real pits
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].endswith("no imprint found")
+
+
 def test_resampled_map_must_fit_too(tmp_path, monkeypatch):
     """The size limit holds for the map resampled to square pixels as for the file's own: 64 points x 32 lines
     (2048 values) on a square field becomes 64 x 64; with a limit of 3000 values the file is refused."""
