@@ -173,14 +173,17 @@ def robust_plane(x, y, z, n_iter=4, scale_samples=2000, tol=0.001):
     return coef
 
 
-def lm_soft_l1(fun, p, n_iter, f_scale=3.0, step=None, jac=None, ftol=1e-6, xtol=None, lo=None, hi=None):
+def lm_soft_l1(fun, p, n_iter, f_scale=3.0, step=None, jac=None, ftol=1e-6, xtol=None, lo=None, hi=None,
+               vp_jac=None):
     """Levenberg-Marquardt with a soft-L1 loss (reweighted residuals), Marquardt scaling.
 
     A dense normal-equation solve per iteration: cheaper than a general solver's SVD or
     LSMR when there are few parameters. The Jacobian is ``jac(p)`` when given, else forward
-    differences of ``step``. ``lo``/``hi`` clip the parameters after each step. Stops when
-    the cost falls by less than ``ftol`` of itself or no step is larger than ``xtol``
-    (default ``0.1 step``).
+    differences of ``step``; or ``vp_jac(p, wr)`` (``wr``: the weighted residuals) gives an
+    approximate Jacobian and what it leaves out of the gradient ``jacobian.T @ wr``, subtracted
+    to make the gradient exact (Kaufman's variable projection). ``lo``/``hi`` clip the parameters
+    after each step. Stops when the cost falls by less than ``ftol`` of itself or no step is
+    larger than ``xtol`` (default ``0.1 step``).
 
     Returns
     -------
@@ -199,17 +202,20 @@ def lm_soft_l1(fun, p, n_iter, f_scale=3.0, step=None, jac=None, ftol=1e-6, xtol
     c = cost(r)
     lam = 1e-2
     for _ in range(n_iter):
+        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
+        left_out = 0.0
         if jac is not None:
             jm = jac(p)
+        elif vp_jac is not None:
+            jm, left_out = vp_jac(p, w * r)
         else:
             jm = np.empty((len(r), len(p)))
             for j in range(len(p)):
                 q = p.copy()
                 q[j] += step
                 jm[:, j] = (fun(q) - r) / step
-        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
         jw = jm * w[:, None]
-        a, g = jw.T @ jm, jw.T @ r
+        a, g = jw.T @ jm, jw.T @ r - left_out
         dia = np.diag(np.diag(a)) + 1e-12 * np.eye(len(p))
         for _try in range(6):
             dp = -np.linalg.solve(a + lam * dia, g)

@@ -23,12 +23,14 @@ Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down
 """
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy import ndimage
 
 from .errors import MarkcalError
 from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
-from .indent_micrograph_kernel import quad_design
+from .indent_micrograph_kernel import quad_design, quad_design_jac
 from .indent_select import dedupe
 from .indent_square_search import square_candidates
 from .threads import map_on_threads
@@ -211,6 +213,7 @@ class _QuadModel:
         self.halo_px = max(0.08 * d_est, 2.0 * f)            # pile-up halo outside: distance of its crest
         self.noise = _noise(small) + 1e-12
         self.shape = z.shape
+        self._last = None          # (p, design, normal matrix, brightnesses) of the last residual
 
     def design(self, p):
         """Design matrix (n, 20): facets and surroundings (linear brightness each), edge lines outside
@@ -219,13 +222,39 @@ class _QuadModel:
                            self.xm, self.ym, self.xs)
 
     @staticmethod
-    def _solve(a, z):
+    def _normal(a):
         ata = a.T @ a
-        return np.linalg.solve(ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata)), a.T @ z)
+        return ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata))
+
+    def _solve(self, a, z):
+        return np.linalg.solve(self._normal(a), a.T @ z)
 
     def residual(self, p):
+        p = np.asarray(p, np.float64)
         a = self.design(p)
-        return (a @ self._solve(a, self.z) - self.z) / self.noise
+        normal = self._normal(a)
+        coef = np.linalg.solve(normal, a.T @ self.z)
+        self._last = (p.copy(), a, normal, coef)        # the Jacobian is taken where the last residual was
+        return (a @ coef - self.z) / self.noise
+
+    def jacobian(self, p, free, wr):
+        """Variable-projection derivatives of :meth:`residual` by ``p[free]``, analytic, in one pass over the pixels.
+
+        Returns Kaufman's Jacobian (n, len(free)) (the brightnesses held at their optimum, projected off the
+        design's columns) and what it leaves out of the gradient ``jacobian.T @ wr`` of a reweighted cost
+        (``wr``: the weighted residuals at ``p``): r.T d(A u)/dp with u = (A.T A)^-1 A.T wr, the brightnesses' own
+        response. Subtracted, the gradient is exact; without it, it is exact only for unweighted residuals,
+        and the fit stalled where many pixels lie beyond the loss's scale.
+        """
+        p = np.asarray(p, np.float64)
+        if self._last is None or not np.array_equal(self._last[0], p):
+            self.residual(p)
+        _p, a, normal, coef = self._last
+        u = np.linalg.solve(normal, a.T @ wr)
+        _a, d = quad_design_jac(self.X, self.Y, p, np.vstack([coef, u]), np.asarray(free, np.int64), self.soft,
+                                self.line_px, self.halo_px, self.xm, self.ym, self.xs)
+        jac = (d[0] - a @ np.linalg.solve(normal, a.T @ d[0])) / self.noise
+        return jac, d[1].T @ ((a @ coef - self.z) / self.noise)
 
     def region_levels(self, p):
         """Mean brightness of each facet and of the surroundings (fitted), the residual RMS and the
@@ -235,6 +264,23 @@ class _QuadModel:
         lv = coef[:15].reshape(5, 3)[:, 0]
         return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2))), float(coef[17])
 
+    def restricted(self, keep):
+        """The same model on the pixels ``keep`` (bool over :attr:`z`) only."""
+        out = copy.copy(self)
+        out.X, out.Y, out.z = self.X[keep], self.Y[keep], self.z[keep]
+        out._last = None
+        return out
+
+    def explains(self, p) -> bool:
+        """Whether the imprint at ``p`` explains the window better than a plane does, by the Bayesian
+        information criterion: N ln(SSR_plane / SSR) > (k - 3) ln N with k = 20 brightnesses + 14 geometry."""
+        a = self.design(p)
+        ssr = float(np.sum((a @ self._solve(a, self.z) - self.z) ** 2))
+        plane = np.column_stack([np.ones(len(self.z)), self.X - self.xm, self.Y - self.ym])
+        ssr_plane = float(np.sum((plane @ np.linalg.lstsq(plane, self.z, rcond=None)[0] - self.z) ** 2))
+        n = len(self.z)
+        return n * np.log(ssr_plane / max(ssr, 1e-300)) > (a.shape[1] + 14 - 3) * np.log(n)
+
 
 def _seg_dist(X, Y, a, b):
     ab = b - a
@@ -242,15 +288,27 @@ def _seg_dist(X, Y, a, b):
     return np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1])
 
 
-def _lm(fun, p, step, n_iter, f_scale=3.0, bow_max=None):
-    """Levenberg-Marquardt with a soft-L1 loss and a forward-difference Jacobian
-    (:func:`indent_geometry.lm_soft_l1`): a dense 10 x 10 or 14 x 14 system per iteration; with
-    ``bow_max`` (px) the four bows (``p[10:14]``) are kept within +-bow_max."""
+def _lm(model, p, step, n_iter, f_scale=3.0, bow_max=None, free=None):
+    """Levenberg-Marquardt with a soft-L1 loss (:func:`indent_geometry.lm_soft_l1`) on ``model``'s residual and
+    analytic Jacobian (:meth:`_QuadModel.jacobian`): a dense 10 x 10 or 14 x 14 system per iteration. It stops
+    when no step exceeds a tenth of ``step`` (px). ``free``: the indices of ``p`` fitted (the others held; None:
+    all); with ``bow_max`` (px) the four bows (``p[10:14]``) are kept within +-bow_max."""
+    p = np.asarray(p, np.float64)
+    idx = np.arange(len(p)) if free is None else np.asarray(free)
     lo = hi = None
     if bow_max is not None:
         lo, hi = np.full(len(p), -np.inf), np.full(len(p), np.inf)
         lo[10:14], hi[10:14] = -bow_max, bow_max
-    return lm_soft_l1(fun, p, n_iter, f_scale=f_scale, step=step, lo=lo, hi=hi)
+        lo, hi = lo[idx], hi[idx]
+
+    def whole(q):
+        out = p.copy()
+        out[idx] = q
+        return out
+
+    q = lm_soft_l1(lambda q: model.residual(whole(q)), p[idx], n_iter, f_scale=f_scale, step=step, lo=lo, hi=hi,
+                   vp_jac=lambda q, wr: model.jacobian(whole(q), idx, wr))
+    return whole(q)
 
 
 def _soft_cost(r, f_scale=3.0):
@@ -308,15 +366,15 @@ def _refine(img, corners, apex, d_px, square=None):
                     starts.append(np.concatenate([mid, (mid + v).ravel()]))
             # every start two steps, the six best four more (the winner after six steps was among the six
             # best after two in 63 of 64 fits of the micrograph tests and BSE renders)
-            early = [_lm(model.residual, q, 0.05 * f, 2) for q in starts]
+            early = [_lm(model, q, 0.05 * f, 2) for q in starts]
             cost = [_soft_cost(model.residual(q)) for q in early]
             best = None
             for k in np.argsort(cost)[:6]:
-                q = _lm(model.residual, early[k], 0.05 * f, 4)
+                q = _lm(model, early[k], 0.05 * f, 4)
                 c = _soft_cost(model.residual(q))
                 if best is None or c < best[0]:
                     best = (c, q)
-            p = np.concatenate([_lm(model.residual, best[1], 0.05 * f, 20), np.zeros(4)])
+            p = np.concatenate([_lm(model, best[1], 0.05 * f, 20), np.zeros(4)])
             if not _plausible(p[2:10].reshape(4, 2), p[:2]) and _plausible(p[2:10].reshape(4, 2), None):
                 # a square whose facets barely differ (light from above): their ridges, and with them the
                 # apex, are lost in the coarse blocks; the finer levels find them from its centre
@@ -327,7 +385,7 @@ def _refine(img, corners, apex, d_px, square=None):
                 return p[2:10].reshape(4, 2), p[:2], p[10:14], None
         elif i < len(levels) - 1:
             # to convergence (stops early): 8 iterations had left a bowed 220 px imprint at 202 px
-            p = _lm(model.residual, p, 0.05 * f, 20, bow_max=bow_max)
+            p = _lm(model, p, 0.05 * f, 20, bow_max=bow_max)
         else:
             # last level: also from the corners pulled 2 px towards the apex (the outer flank of a dark
             # edge line is a local minimum a few pixels outside the edge)
@@ -336,7 +394,7 @@ def _refine(img, corners, apex, d_px, square=None):
                 c = p[2:10].reshape(4, 2)
                 v = c - p[:2]
                 q = np.concatenate([p[:2], (c - pull_px * v / np.hypot(*v.T)[:, None]).ravel(), p[10:]])
-                q = _lm(model.residual, q, 0.05 * f, 8, bow_max=bow_max)
+                q = _lm(model, q, 0.05 * f, 8, bow_max=bow_max)
                 cost = _soft_cost(model.residual(q))
                 if best is None or cost < best[0]:
                     best = (cost, q)
@@ -426,23 +484,15 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
         f *= 2
     band = max(6.0 * f, 0.06 * d_px)
     model = _QuadModel(img, f, corners, apex, band)
-    X, Y, z = model.X, model.Y, model.z
+    X, Y = model.X, model.Y
     for k in range(4):
         reach = CORNER_REACH * min(np.hypot(*(corners[k - 1] - corners[k])), np.hypot(*(corners[(k + 1) % 4] - corners[k])))
         near = np.hypot(X - corners[k, 0], Y - corners[k, 1]) < reach
         if near.sum() < 60:
             continue
-        model.X, model.Y, model.z = X[near], Y[near], z[near]
-        idx = [2 * (j % 4) + c for j in (k - 1, k, k + 1) for c in (0, 1)]
+        free = [2 + 2 * (j % 4) + c for j in (k - 1, k, k + 1) for c in (0, 1)]
         p0 = np.concatenate([apex, corners.ravel()] + ([] if bows is None else [bows]))
-
-        def fun(q):
-            p = p0.copy()
-            p[[2 + i for i in idx]] = q
-            return model.residual(p)
-
-        q = _lm(fun, p0[[2 + i for i in idx]], 0.05 * f, 8)
-        tip = q[2:4]
+        tip = _lm(model.restricted(near), p0, 0.05 * f, 8, free=free)[2 + 2 * k:4 + 2 * k]
         if np.hypot(*(tip - corners[k])) <= 0.05 * _mean_diagonal(corners):
             out[k] = tip
     return out
@@ -566,7 +616,8 @@ def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
     off_centre = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
     if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and signal > 2 * model.noise
             and rms < max(MAX_FIT_RMS * model.noise, MAX_FIT_RMS_REL * contrast)
-            and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE):
+            and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE
+            and model.explains(np.concatenate([apex, corners.ravel(), bows]))):
         return None
     c_um = corners * pixel_um
     dd1, dd2, orient = diagonals(c_um)

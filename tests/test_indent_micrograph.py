@@ -218,19 +218,20 @@ def test_real_sem_square_search_lands_on_the_imprint():
     40 px had won while squares under the minimum diagonal were scored (nothing found); and a short edge's
     mean gradient can beat a long one's by chance, so the score is the weakest edge's significance. Now a
     square lies on the imprint (within a fifth of d of the manual centre) and the fit from it finds one
-    imprint centred within 5 % of d of the manual corners' mean, its mean diagonal within 10 % of the manual
-    reading (ranked by the plain mean, the squares led the fit to 10.6 um; the 2 % goal: the test below)."""
+    imprint centred within 5 % of d of the manual corners' mean (ranked by the plain mean, the squares led the
+    fit to 10.6 um)."""
     imps, cands, manual, px = _real_sem_by_squares()
     d_px = 19.09 / px
     assert any(np.hypot(*(c[1] - manual.mean(axis=0))) < 0.2 * d_px for c in cands)
     assert len(imps) == 1
     assert np.hypot(imps[0].x_um / px - manual[:, 0].mean(), imps[0].y_um / px - manual[:, 1].mean()) < 0.05 * d_px
-    assert abs(imps[0].d_um / 19.09 - 1) <= 0.10
 
 
-@pytest.mark.xfail(strict=True, reason="from the square search's starts the fit stops at 17.93 um (-6.1 %), "
-                   "on a quadrilateral inside the imprint; the outline detection's starts reach 19.16 um")
 def test_real_sem_square_search_diagonal_against_manual_reading():
-    """The same imprint's mean diagonal against the manual 19.09 um, to the SEM goal of 2 % (not met)."""
+    """The same imprint's mean diagonal against the manual 19.09 um, to the SEM goal of 2 %. From the squares'
+    start the right-hand corner lies on a faint edge where the cost is flat over 40 px; with forward-difference
+    Jacobians the fit stopped 48 px short there (17.93 um, -6.1 %). With the exact gradient of the reweighted
+    cost it reaches the corner: 19.23 um (+0.7 %); three corners within 1.5 px of the manual reading, the bottom
+    one 5.8 px."""
     imps, _cands, _manual, _px = _real_sem_by_squares()
     assert len(imps) == 1 and abs(imps[0].d_um / 19.09 - 1) <= 0.02
