@@ -385,6 +385,10 @@ WEAK = {
     "pm-flatness-weight": "flatness weight x 1e-3: the plane has its own parameters, so only the probe data's share "
                           "in the shared ones changes; depth error 1.06 -> 1.47 nm (seed 7), 2.26 -> 2.88 nm "
                           "(seed 9), parameters equal to 0.1 µrad; a test would need many seeds (benchmark work)",
+    "micrograph-levels-on-coarse-size": "the full-resolution level skipped on the coarse outline's size: with the "
+                                        "analytic derivatives (session 18) the 2x level converges and the corner "
+                                        "refit works at full resolution, so OM seeds 3100-3139 move by 0.1-0.65 px "
+                                        "(3119: +0.52 -> +0.58 px), inside the 1 px goal and the test's 0.8 px",
     "detect-gradient-axis-swap": "background gradient terms crossed: ring centre RMS 3.6 -> 5.0 µm, max 12.4 -> "
                                  "17.7 µm (seed 101), inside the 1.5x limits of tests/test_ring_refinement.py; "
                                  "a render with a strong intensity gradient would show it",

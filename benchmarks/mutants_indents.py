@@ -29,7 +29,7 @@ MUTANTS_INDENTS = [
     },
     {   # block centres of the coarse levels half a block off
         "name": "micrograph-block-half-pixel",
-        "file": "stages/indent_micrograph.py",
+        "file": "stages/indent_micrograph_model.py",
         "old": "X, Y = np.meshgrid(cols * f + (f - 1) / 2, rows * f + (f - 1) / 2)",
         "new": "X, Y = np.meshgrid(cols * f + f / 2, rows * f + f / 2)",
         "tests": [_MICRO],
@@ -150,8 +150,8 @@ MUTANTS_INDENTS = [
     {   # the first mask from the raw map only: a drifting scan masks 95 % of the field (session 13)
         "name": "level-first-mask-without-side-strips",
         "file": "stages/indent_level.py",
-        "old": "    return min(masks, key=lambda m: int(m.sum()))\n",
-        "new": "    return masks[0]\n",
+        "old": "    return min(found, key=lambda f: int(f[0].sum()))\n",
+        "new": "    return found[0]\n",
         "tests": [_SINGLE + "::test_drifting_scan_lines_within_goals"],
     },
     {   # no square search when the outline finds nothing (BSE grain; session 13)
@@ -364,8 +364,9 @@ MUTANTS_INDENTS = [
     {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
         "name": "select-pits-not-pyramids",
         "file": "stages/indent_select.py",
-        "old": "                                          or m.floor_share > MAX_FLOOR_SHARE or _no_pyramid(m, pixel_um))]\n",
-        "new": "                                          )]\n",
+        "old": ("                                          or (m.floor_share > MAX_FLOOR_SHARE and not floor_clipped)\n"
+                "                                          or _no_pyramid(m, pixel_um)\n"),
+        "new": "",
         "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
     },
     {   # the corner's sector the whole quadrant again: a chip's tip 25 deg off the diagonal (session 13)
@@ -452,5 +453,33 @@ MUTANTS_INDENTS = [
         "old": "        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e)[0] - (back_px - 3.0) * e  # on the valley, behind\n",
         "new": "        base = rc0 + (s - back_px) * e\n",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
+    },
+    {   # Kaufman's Jacobian alone: the reweighted gradient off by what it leaves out (session 18)
+        "name": "micrograph-gradient-left-out-dropped",
+        "file": "stages/indent_micrograph_model.py",
+        "old": "        return jac, d[1].T @ ((a @ coef - self.z) / self.noise)\n",
+        "new": "        return jac, 0.0\n",
+        "tests": ["tests/test_micrograph_model.py"],
+    },
+    {   # the Jacobian not projected off the design's columns (session 18)
+        "name": "micrograph-jacobian-unprojected",
+        "file": "stages/indent_micrograph_model.py",
+        "old": "        jac = (d[0] - a @ np.linalg.solve(normal, a.T @ d[0])) / self.noise\n",
+        "new": "        jac = d[0] / self.noise\n",
+        "tests": ["tests/test_micrograph_model.py"],
+    },
+    {   # a ridge line's slope with the wrong sign in the analytic derivatives (session 18)
+        "name": "micrograph-ridge-derivative-sign",
+        "file": "stages/indent_micrograph_kernel.py",
+        "old": "(-math.exp(-0.5 * u * u) * r[k] / (line_px * line_px))",
+        "new": "(math.exp(-0.5 * u * u) * r[k] / (line_px * line_px))",
+        "tests": ["tests/test_micrograph_model.py"],
+    },
+    {   # the bow's derivative by the corners left out (session 18)
+        "name": "micrograph-bow-corner-derivative-dropped",
+        "file": "stages/indent_micrograph_kernel.py",
+        "old": "                if bow[k] != 0.0 and 0.0 < tb[k] < 1.0:\n",
+        "new": "                if False:\n",
+        "tests": ["tests/test_micrograph_model.py"],
     },
 ]

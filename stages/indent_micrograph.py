@@ -14,7 +14,8 @@ facet edges end. The measurement:
   triangular facets and the surroundings each given a linear brightness (fitted in closed
   form for every trial geometry: variable projection), edges softened by about a pixel's blur
   (the inside is the product of the four soft half-planes, so a blurred corner keeps a quarter
-  of the contrast at its tip); the coordinates by robust least squares. On the finer levels only a
+  of the contrast at its tip); the coordinates by robust (soft-L1) least squares with analytic
+  derivatives and the exact gradient of the reweighted cost (:meth:`.indent_micrograph_model.QuadModel.jacobian`). On the finer levels only a
   band around the edges and ridges is used. Below the coarsest level each edge may bow (a parabola through its
   corners, outward positive), so the corners are the tips of bowed edges;
 - each corner refitted on the pixels near it (:func:`_corner_tips`).
@@ -23,14 +24,12 @@ Frame: x = column x pixel size, y = row x pixel size (pixel centres, µm, y down
 """
 from __future__ import annotations
 
-import copy
-
 import numpy as np
 from scipy import ndimage
 
 from .errors import MarkcalError
-from .indent_geometry import Imprint, circle_fit, diagonals, lm_soft_l1
-from .indent_micrograph_kernel import quad_design, quad_design_jac
+from .indent_geometry import Imprint, circle_fit, diagonals
+from .indent_micrograph_model import QuadModel, block_mean, lm, noise_level, soft_cost
 from .indent_select import dedupe
 from .indent_square_search import square_candidates
 from .threads import map_on_threads
@@ -61,9 +60,6 @@ FINEST_PX = 160
 #: largest edge bow fitted (fraction of d/2 at mid-edge; real imprints bow up to about 8 %): a bow free
 #: without bound took in a scratch beside an edge (32 px on a 240 px imprint)
 MAX_BOW = 0.12
-#: softness (logistic scale, px) of the edges at full resolution: a step blurred by a Gaussian of
-#: about 1 px (the optics or beam at usual sampling, plus pixel integration)
-EDGE_SOFT_PX = 0.57
 
 
 def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
@@ -84,18 +80,6 @@ def info_bar_rows(img: np.ndarray, min_rows: int = 8) -> int:
         else:
             break
     return n + 2 if n >= min_rows else 0
-
-
-def _block(img, f):
-    if f == 1:
-        return img
-    ny, nx = (img.shape[0] // f) * f, (img.shape[1] // f) * f
-    return img[:ny, :nx].reshape(ny // f, f, nx // f, f).mean(axis=(1, 3))
-
-
-def _noise(img):
-    d = np.diff(img, axis=1)
-    return float(1.4826 * np.median(np.abs(d - np.median(d))) / np.sqrt(2)) + 1e-12
 
 
 def _robust_quadratic(z, step=2, n_iter=4):
@@ -120,11 +104,11 @@ def _coarse(img, min_d_px):
     """Candidate imprints: list of (corners (4, 2) [x, y] px, apex (2,) px, corners of the largest
     square inside the outline (4, 2) px) on the full-res grid."""
     f = max(1, int(np.ceil(max(img.shape) / 320)))
-    small = _block(img, f)
+    small = block_mean(img, f)
     s = ndimage.gaussian_filter(small, 1.0)
     dev = s - _robust_quadratic(s)
     sd = 1.4826 * np.median(np.abs(dev - np.median(dev))) + 1e-12
-    noise_s = _noise(small) / 2.0
+    noise_s = noise_level(small) / 2.0
     thr = max(3.0 * sd, 5 * noise_s)
     grad = ndimage.gaussian_gradient_magnitude(small, 1.0)
     gthr = np.median(grad) + 6 * 1.4826 * np.median(np.abs(grad - np.median(grad)))
@@ -180,142 +164,6 @@ def _coarse(img, min_d_px):
     return out
 
 
-class _QuadModel:
-    """Four facets (apex + quadrilateral) and the surroundings, each a linear brightness."""
-
-    def __init__(self, img, f, corners, apex, band_px=None):
-        self.f = f
-        small = _block(img, f)
-        self.small = small
-        c0 = apex
-        ext = 1.35 * np.max(np.hypot(*(corners - c0).T)) + 4 * f
-        # coordinates of the block centres on the full-res grid
-        lo = np.floor((c0 - ext - (f - 1) / 2) / f).astype(int)
-        hi = np.ceil((c0 + ext - (f - 1) / 2) / f).astype(int) + 1
-        lo = np.maximum(lo, 0)
-        hi = np.minimum(hi, [small.shape[1], small.shape[0]])
-        cols, rows = np.arange(lo[0], hi[0]), np.arange(lo[1], hi[1])
-        X, Y = np.meshgrid(cols * f + (f - 1) / 2, rows * f + (f - 1) / 2)
-        z = small[lo[1]:hi[1], lo[0]:hi[0]]
-        keep = np.isfinite(z)
-        if band_px is not None:
-            d = np.full(X.shape, np.inf)
-            for k in range(4):
-                for a, b in ((corners[k], corners[(k + 1) % 4]), (apex, corners[k])):
-                    d = np.minimum(d, _seg_dist(X, Y, a, b))
-            keep &= d < band_px
-        self.X, self.Y, self.z = X[keep], Y[keep], z[keep]
-        self.xm, self.ym = float(self.X.mean()), float(self.Y.mean())
-        self.xs = max(float(np.ptp(self.X)), 1.0)
-        self.soft = max(0.45 * f, EDGE_SOFT_PX)
-        self.line_px = max(1.2, 0.6 * f)                    # ridge and edge lines: width (full-res px)
-        d_est = 2 * np.max(np.hypot(*(corners - apex).T))
-        self.halo_px = max(0.08 * d_est, 2.0 * f)            # pile-up halo outside: distance of its crest
-        self.noise = _noise(small) + 1e-12
-        self.shape = z.shape
-        self._last = None          # (p, design, normal matrix, brightnesses) of the last residual
-
-    def design(self, p):
-        """Design matrix (n, 20): facets and surroundings (linear brightness each), edge lines outside
-        and inside, edge glow, ridge lines, halo (:func:`.indent_micrograph_kernel.quad_design`)."""
-        return quad_design(self.X, self.Y, np.asarray(p, np.float64), self.soft, self.line_px, self.halo_px,
-                           self.xm, self.ym, self.xs)
-
-    @staticmethod
-    def _normal(a):
-        ata = a.T @ a
-        return ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata))
-
-    def _solve(self, a, z):
-        return np.linalg.solve(self._normal(a), a.T @ z)
-
-    def residual(self, p):
-        p = np.asarray(p, np.float64)
-        a = self.design(p)
-        normal = self._normal(a)
-        coef = np.linalg.solve(normal, a.T @ self.z)
-        self._last = (p.copy(), a, normal, coef)        # the Jacobian is taken where the last residual was
-        return (a @ coef - self.z) / self.noise
-
-    def jacobian(self, p, free, wr):
-        """Variable-projection derivatives of :meth:`residual` by ``p[free]``, analytic, in one pass over the pixels.
-
-        Returns Kaufman's Jacobian (n, len(free)) (the brightnesses held at their optimum, projected off the
-        design's columns) and what it leaves out of the gradient ``jacobian.T @ wr`` of a reweighted cost
-        (``wr``: the weighted residuals at ``p``): r.T d(A u)/dp with u = (A.T A)^-1 A.T wr, the brightnesses' own
-        response. Subtracted, the gradient is exact; without it, it is exact only for unweighted residuals,
-        and the fit stalled where many pixels lie beyond the loss's scale.
-        """
-        p = np.asarray(p, np.float64)
-        if self._last is None or not np.array_equal(self._last[0], p):
-            self.residual(p)
-        _p, a, normal, coef = self._last
-        u = np.linalg.solve(normal, a.T @ wr)
-        _a, d = quad_design_jac(self.X, self.Y, p, np.vstack([coef, u]), np.asarray(free, np.int64), self.soft,
-                                self.line_px, self.halo_px, self.xm, self.ym, self.xs)
-        jac = (d[0] - a @ np.linalg.solve(normal, a.T @ d[0])) / self.noise
-        return jac, d[1].T @ ((a @ coef - self.z) / self.noise)
-
-    def region_levels(self, p):
-        """Mean brightness of each facet and of the surroundings (fitted), the residual RMS and the
-        height of the glow along the edges (SEM edge effect), all in grey levels."""
-        a = self.design(p)
-        coef = self._solve(a, self.z)
-        lv = coef[:15].reshape(5, 3)[:, 0]
-        return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2))), float(coef[17])
-
-    def restricted(self, keep):
-        """The same model on the pixels ``keep`` (bool over :attr:`z`) only."""
-        out = copy.copy(self)
-        out.X, out.Y, out.z = self.X[keep], self.Y[keep], self.z[keep]
-        out._last = None
-        return out
-
-    def explains(self, p) -> bool:
-        """Whether the imprint at ``p`` explains the window better than a plane does, by the Bayesian
-        information criterion: N ln(SSR_plane / SSR) > (k - 3) ln N with k = 20 brightnesses + 14 geometry."""
-        a = self.design(p)
-        ssr = float(np.sum((a @ self._solve(a, self.z) - self.z) ** 2))
-        plane = np.column_stack([np.ones(len(self.z)), self.X - self.xm, self.Y - self.ym])
-        ssr_plane = float(np.sum((plane @ np.linalg.lstsq(plane, self.z, rcond=None)[0] - self.z) ** 2))
-        n = len(self.z)
-        return n * np.log(ssr_plane / max(ssr, 1e-300)) > (a.shape[1] + 14 - 3) * np.log(n)
-
-
-def _seg_dist(X, Y, a, b):
-    ab = b - a
-    t = np.clip(((X - a[0]) * ab[0] + (Y - a[1]) * ab[1]) / max(ab @ ab, 1e-12), 0.0, 1.0)
-    return np.hypot(X - a[0] - t * ab[0], Y - a[1] - t * ab[1])
-
-
-def _lm(model, p, step, n_iter, f_scale=3.0, bow_max=None, free=None):
-    """Levenberg-Marquardt with a soft-L1 loss (:func:`indent_geometry.lm_soft_l1`) on ``model``'s residual and
-    analytic Jacobian (:meth:`_QuadModel.jacobian`): a dense 10 x 10 or 14 x 14 system per iteration. It stops
-    when no step exceeds a tenth of ``step`` (px). ``free``: the indices of ``p`` fitted (the others held; None:
-    all); with ``bow_max`` (px) the four bows (``p[10:14]``) are kept within +-bow_max."""
-    p = np.asarray(p, np.float64)
-    idx = np.arange(len(p)) if free is None else np.asarray(free)
-    lo = hi = None
-    if bow_max is not None:
-        lo, hi = np.full(len(p), -np.inf), np.full(len(p), np.inf)
-        lo[10:14], hi[10:14] = -bow_max, bow_max
-        lo, hi = lo[idx], hi[idx]
-
-    def whole(q):
-        out = p.copy()
-        out[idx] = q
-        return out
-
-    q = lm_soft_l1(lambda q: model.residual(whole(q)), p[idx], n_iter, f_scale=f_scale, step=step, lo=lo, hi=hi,
-                   vp_jac=lambda q, wr: model.jacobian(whole(q), idx, wr))
-    return whole(q)
-
-
-def _soft_cost(r, f_scale=3.0):
-    """Soft-L1 cost of residuals (noise units), as :func:`_lm` minimises it (up to a constant)."""
-    return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2)))
-
-
 def _mean_diagonal(c):
     """Mean of the two diagonals (corner 0-2, 1-3) of a quadrilateral (same units as ``c``)."""
     return 0.5 * (np.hypot(*(c[0] - c[2])) + np.hypot(*(c[1] - c[3])))
@@ -349,7 +197,7 @@ def _refine(img, corners, apex, d_px, square=None):
             # a 119 px OM imprint, +3 px)
             break
         band = None if i == 0 else max(6.0 * f, 0.06 * d_px)
-        model = _QuadModel(img, f, p[2:10].reshape(4, 2), p[:2], band)
+        model = QuadModel(img, f, p[2:10].reshape(4, 2), p[:2], band)
         if len(model.z) < 60:
             continue
         if i == 0:
@@ -366,15 +214,15 @@ def _refine(img, corners, apex, d_px, square=None):
                     starts.append(np.concatenate([mid, (mid + v).ravel()]))
             # every start two steps, the six best four more (the winner after six steps was among the six
             # best after two in 63 of 64 fits of the micrograph tests and BSE renders)
-            early = [_lm(model, q, 0.05 * f, 2) for q in starts]
-            cost = [_soft_cost(model.residual(q)) for q in early]
+            early = [lm(model, q, 0.05 * f, 2) for q in starts]
+            cost = [soft_cost(model.residual(q)) for q in early]
             best = None
             for k in np.argsort(cost)[:6]:
-                q = _lm(model, early[k], 0.05 * f, 4)
-                c = _soft_cost(model.residual(q))
+                q = lm(model, early[k], 0.05 * f, 4)
+                c = soft_cost(model.residual(q))
                 if best is None or c < best[0]:
                     best = (c, q)
-            p = np.concatenate([_lm(model, best[1], 0.05 * f, 20), np.zeros(4)])
+            p = np.concatenate([lm(model, best[1], 0.05 * f, 20), np.zeros(4)])
             if not _plausible(p[2:10].reshape(4, 2), p[:2]) and _plausible(p[2:10].reshape(4, 2), None):
                 # a square whose facets barely differ (light from above): their ridges, and with them the
                 # apex, are lost in the coarse blocks; the finer levels find them from its centre
@@ -385,7 +233,7 @@ def _refine(img, corners, apex, d_px, square=None):
                 return p[2:10].reshape(4, 2), p[:2], p[10:14], None
         elif i < len(levels) - 1:
             # to convergence (stops early): 8 iterations had left a bowed 220 px imprint at 202 px
-            p = _lm(model, p, 0.05 * f, 20, bow_max=bow_max)
+            p = lm(model, p, 0.05 * f, 20, bow_max=bow_max)
         else:
             # last level: also from the corners pulled 2 px towards the apex (the outer flank of a dark
             # edge line is a local minimum a few pixels outside the edge)
@@ -394,8 +242,8 @@ def _refine(img, corners, apex, d_px, square=None):
                 c = p[2:10].reshape(4, 2)
                 v = c - p[:2]
                 q = np.concatenate([p[:2], (c - pull_px * v / np.hypot(*v.T)[:, None]).ravel(), p[10:]])
-                q = _lm(model, q, 0.05 * f, 8, bow_max=bow_max)
-                cost = _soft_cost(model.residual(q))
+                q = lm(model, q, 0.05 * f, 8, bow_max=bow_max)
+                cost = soft_cost(model.residual(q))
                 if best is None or cost < best[0]:
                     best = (cost, q)
             p = best[1]
@@ -483,7 +331,7 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
     while d_px / f > 2 * FINEST_PX:
         f *= 2
     band = max(6.0 * f, 0.06 * d_px)
-    model = _QuadModel(img, f, corners, apex, band)
+    model = QuadModel(img, f, corners, apex, band)
     X, Y = model.X, model.Y
     for k in range(4):
         reach = CORNER_REACH * min(np.hypot(*(corners[k - 1] - corners[k])), np.hypot(*(corners[(k + 1) % 4] - corners[k])))
@@ -492,7 +340,7 @@ def _corner_tips(img, corners, apex, d_px, bows=None):
             continue
         free = [2 + 2 * (j % 4) + c for j in (k - 1, k, k + 1) for c in (0, 1)]
         p0 = np.concatenate([apex, corners.ravel()] + ([] if bows is None else [bows]))
-        tip = _lm(model.restricted(near), p0, 0.05 * f, 8, free=free)[2 + 2 * k:4 + 2 * k]
+        tip = lm(model.restricted(near), p0, 0.05 * f, 8, free=free)[2 + 2 * k:4 + 2 * k]
         if np.hypot(*(tip - corners[k])) <= 0.05 * _mean_diagonal(corners):
             out[k] = tip
     return out
@@ -601,7 +449,7 @@ def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
         # the ridge end overrides the fit only where they disagree by more than its own
         # uncertainty (about 2 px on renders), and by less than RIDGE_OVERRIDE_MAX of d (a 628 px SEM
         # imprint whose ridges glow past its corners: two corners 45 px out)
-        moved = _ridge_corners(work, corners, apex, _noise(work))
+        moved = _ridge_corners(work, corners, apex, noise_level(work))
         shift = np.hypot(*(moved - corners).T)
         far = [k for k in weak if RIDGE_OVERRIDE_PX < shift[k] <= RIDGE_OVERRIDE_MAX * _mean_diagonal(corners)]
         corners = corners.copy()
@@ -616,8 +464,7 @@ def _measure_one(work, pixel_um, min_diagonal_px, corners0, apex0, square0):
     off_centre = np.hypot(*(apex - corners.mean(axis=0))) / (0.5 * (d1 + d2))
     if not (min_diagonal_px <= 0.5 * (d1 + d2) and 0.6 < d1 / d2 < 1.67 and signal > 2 * model.noise
             and rms < max(MAX_FIT_RMS * model.noise, MAX_FIT_RMS_REL * contrast)
-            and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE
-            and model.explains(np.concatenate([apex, corners.ravel(), bows]))):
+            and np.all(np.abs(_angles_deg(corners) - 90.0) < 20.0) and off_centre < MAX_APEX_OFF_CENTRE):
         return None
     c_um = corners * pixel_um
     dd1, dd2, orient = diagonals(c_um)

@@ -1,4 +1,4 @@
-"""Compiled design matrix of the four-facet micrograph model (:class:`.indent_micrograph._QuadModel`).
+"""Compiled design matrix of the four-facet micrograph model (:class:`.indent_micrograph_model.QuadModel`).
 
 One pass over the pixels fills the 20 columns for one trial geometry: the four facets' and the
 surroundings' linear brightness (3 columns each), then the edge line outside and inside, the edge glow,

@@ -8,6 +8,7 @@ import pytest
 
 from markcal.fixtures.indent_micrograph_independent import render_micrograph_independent
 from markcal.stages import indent_micrograph as im
+from markcal.stages.indent_micrograph_model import QuadModel
 from markcal.stages.indent_micrograph_kernel import quad_design_jac
 
 
@@ -15,7 +16,7 @@ from markcal.stages.indent_micrograph_kernel import quad_design_jac
 def model_and_start():
     img, _px, _truth = render_micrograph_independent(4, "om", 0.03)
     corners, apex, _square = im.find_imprints(img)[0]
-    return im._QuadModel(np.asarray(img, float), 2, corners, apex, 12.0), corners, apex
+    return QuadModel(np.asarray(img, float), 2, corners, apex, 12.0), corners, apex
 
 
 def _perturbed(corners, apex, seed, bows=True):
