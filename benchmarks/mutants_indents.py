@@ -482,4 +482,18 @@ MUTANTS_INDENTS = [
         "new": "                if False:\n",
         "tests": ["tests/test_micrograph_model.py"],
     },
+    {   # no second fit when the diagonals differ by more than 5 % (a corner short on a faint edge; session 18)
+        "name": "micrograph-short-corner-kept",
+        "file": "stages/indent_micrograph.py",
+        "old": "    if abs(d1 - d2) > UNEQUAL_DIAGONALS * 0.5 * (d1 + d2):\n",
+        "new": "    if False:\n",
+        "tests": ["tests/test_micrograph_independent.py::test_corner_short_on_a_faint_edge_fitted_again"],
+    },
+    {   # the second fit from the square on the shorter diagonal (session 18)
+        "name": "micrograph-restart-on-shorter-diagonal",
+        "file": "stages/indent_micrograph.py",
+        "old": "    k = 0 if np.hypot(*(corners[0] - corners[2])) >= np.hypot(*(corners[1] - corners[3])) else 1\n",
+        "new": "    k = 0 if np.hypot(*(corners[0] - corners[2])) < np.hypot(*(corners[1] - corners[3])) else 1\n",
+        "tests": ["tests/test_micrograph_independent.py::test_corner_short_on_a_faint_edge_fitted_again"],
+    },
 ]

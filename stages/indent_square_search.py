@@ -11,6 +11,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .threads import map_on_threads
+
 __all__ = ["square_candidates"]
 
 TURN_STEP_DEG = 5.0        # turns of the square searched, 0 .. 90 deg
@@ -94,15 +96,20 @@ def square_candidates(img: np.ndarray, min_d_px: float, n_best: int = 3) -> list
     side_min = max(4.0, min_d_px / np.sqrt(2) / f)
     sides = np.unique(np.ceil(side_min * SIZE_STEP ** np.arange(200)).astype(int))
     sides = sides[sides < 0.95 * min(small.shape)]
-    scored = []
-    for theta in np.radians(np.arange(0.0, 90.0, TURN_STEP_DEG)):
-        turned, inside, to_image = _turned(small, theta)
+    thetas = np.radians(np.arange(0.0, 90.0, TURN_STEP_DEG))
+    per_turn = [None] * len(thetas)
+
+    def score_turn(i):
+        turned, inside, to_image = _turned(small, thetas[i])
         gy = ndimage.maximum_filter1d(np.abs(ndimage.sobel(turned, axis=0)), 3, axis=0)
         gx = ndimage.maximum_filter1d(np.abs(ndimage.sobel(turned, axis=1)), 3, axis=1)
         gy[~inside], gx[~inside] = 0.0, 0.0
-        for score, x1, y1, L in _best_squares(gy, gx, inside, sides):
-            sq = np.array([[x1, y1], [x1 + L, y1], [x1 + L, y1 + L], [x1, y1 + L]], float)
-            scored.append((score, to_image(sq)))
+        per_turn[i] = [(score, to_image(np.array([[x1, y1], [x1 + L, y1], [x1 + L, y1 + L], [x1, y1 + L]], float)))
+                       for score, x1, y1, L in _best_squares(gy, gx, inside, sides)]
+
+    # the turns on the thread pool: numpy's and scipy's array loops release the GIL
+    map_on_threads(score_turn, range(len(thetas)))
+    scored = [s for turn in per_turn for s in turn]
     scored.sort(key=lambda t: -t[0])
     out = []
     for score, sq in scored:
