@@ -195,7 +195,20 @@ def test_corner_short_on_a_faint_edge_fitted_again():
     is flat there, and the outline's start left that corner 42 px short (d -5.7 %, diagonals 26 % apart). A fit whose
     diagonals differ by more than 5 % is tried again from the square on its longer diagonal and the lower cost kept:
     -0.17 %. Tolerance: the SEM goal of 2 %, and the imprint where the truth has it (2 px)."""
-    img, px, truth = render_micrograph_independent(1, "sem", -0.03)
+    _one_imprint_to_the_sem_goal(1, -0.03)
+
+
+def test_apex_adrift_where_the_ridges_do_not_show():
+    """BSE seed 12, edges bowed by -3 %: the facets pair up in brightness, the ridges hardly show, and the cost is flat
+    along the apex; the fit left it more than 0.06 d off the corners' mean and the imprint was refused (no imprint
+    found, after 3.9 s of fallbacks). The apex is refitted from the corners' mean and kept at no higher cost: found,
+    -0.28 %. Tolerance: the SEM goal of 2 %, the centre within 2 px."""
+    _one_imprint_to_the_sem_goal(12, -0.03)
+
+
+def _one_imprint_to_the_sem_goal(seed, bow):
+    """One imprint found in SEM render ``seed``, its mean diagonal within the SEM goal of 2 %, its centre within 2 px."""
+    img, px, truth = render_micrograph_independent(seed, "sem", bow)
     imps, _bar = measure_micrograph(img, px)
     assert len(imps) == 1
     t = truth["imprints"][0]
