@@ -1,9 +1,13 @@
-"""Compiled design matrix of the four-facet micrograph model (:class:`.indent_micrograph_model.QuadModel`).
+"""Compiled design matrix of the four-facet micrograph model (:class:`.indent_micrograph_model.QuadModel`),
+and its derivatives.
 
 One pass over the pixels fills the 20 columns for one trial geometry: the four facets' and the
 surroundings' linear brightness (3 columns each), then the edge line outside and inside, the edge glow,
-the ridge lines and the pile-up halo. The fit evaluates it some hundred times per imprint (a
-forward-difference Jacobian per iteration); the fused loop replaces about sixty numpy passes.
+the ridge lines and the pile-up halo (:func:`quad_design`). The same pass can also give the derivatives
+of the model, contracted with one or more brightness vectors, by the geometric parameters
+(:func:`quad_design_jac`): by the chain rule through each pixel's signed distances to the four edges and
+the four apex-corner rays. One such pass replaced a forward-difference Jacobian, which had re-evaluated the
+design 10-14 times per iteration.
 """
 from __future__ import annotations
 
