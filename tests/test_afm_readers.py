@@ -18,17 +18,10 @@ import pytest
 from markcal.pipeline.cli import main
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import read_image
+from realdata import realdata_root
 
 
-def _realdata() -> Path:
-    env = os.environ.get("MARKCAL_REALDATA")
-    if env:
-        return Path(env)
-    beside = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
-    return beside if beside.is_dir() else Path("/work/shared/realdata")
-
-
-REAL = _realdata()
+REAL = realdata_root()
 
 
 def _real(rel: str) -> str:

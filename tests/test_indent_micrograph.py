@@ -11,7 +11,6 @@ import io
 import json
 import os
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,16 +18,12 @@ import pytest
 from markcal.fixtures.indent_micrograph import MicrographOptions, render_micrograph
 from markcal.pipeline.cli import main
 from markcal.stages.indent_micrograph import info_bar_rows, measure_micrograph
+from realdata import realdata_root
 
 SEM_FILE = "sem_vickers/Indent_20230912_7kV_spot4.5_FOV100um_multiBSE_A_05.tif"
 
 
-def _realdata() -> Path:
-    env = os.environ.get("MARKCAL_REALDATA")
-    if env:
-        return Path(env)
-    beside = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
-    return beside if beside.is_dir() else Path("/work/shared/realdata")
+_realdata = realdata_root
 
 
 def _corner_errors_px(measured_um, truth_um, px):

@@ -1,9 +1,7 @@
 """Job formats: DXF, SVG, HPGL and G-code read against their truth, ordered and written back."""
 import json
-import os
 import re
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,17 +10,13 @@ from markcal.fixtures.path_jobs import FILE_FORMATS, job_file
 from markcal.pipeline.cli import main
 from markcal.pipeline.flows.path import read_job
 from markcal.stages.path_job import input_tour, jump_lengths_mm
+from realdata import realdata_root
 
 EXT = {"dxf": ".dxf", "svg": ".svg", "hpgl": ".plt", "gcode": ".gcode"}
 TOL_MM = 0.01
 
 
-def realdata() -> Path:
-    env = os.environ.get("MARKCAL_REALDATA")
-    if env:
-        return Path(env)
-    here = Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata"
-    return here if here.exists() else Path("/work/shared/realdata")
+realdata = realdata_root
 
 
 def key(kind, xy, q=1e-6):

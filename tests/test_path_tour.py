@@ -4,7 +4,6 @@ Reference lengths of the rendered boards are LKH's (elkai 2.0.1, ``DistanceMatri
 rounded distances below, ``solve_tsp(runs=1)`` and ``runs=5`` gave the same length), computed
 once in a script; only the numbers are stored here. Goal of issue 18: every instance <= 1 %.
 """
-import os
 from itertools import permutations, product
 from pathlib import Path
 
@@ -18,17 +17,17 @@ from markcal.stages.errors import MarkcalError
 from markcal.stages.path_job import Timing, Tour, check_tour, make_job, tour_cost
 from markcal.stages.path_tour import LocalSearchOptions, best_entries, local_search, nearest_neighbour_tour
 from markcal.stages.path_tour_cand import alpha_candidates
+from realdata import realdata_root
 
 TM = Timing()
 GAP_MAX_PCT = 1.0
 
 
 def realdata() -> Path:
-    env = os.environ.get("MARKCAL_REALDATA")
-    for p in (env, Path(__file__).resolve().parents[1] / ".." / "shared" / "realdata", "/work/shared/realdata"):
-        if p and Path(p).is_dir():
-            return Path(p)
-    pytest.skip("real data folder not found (set MARKCAL_REALDATA)")
+    root = realdata_root()
+    if not root.is_dir():
+        pytest.skip("real data folder not found (set MARKCAL_REALDATA)")
+    return root
 
 
 def solve(p, **kw):
