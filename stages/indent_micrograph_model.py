@@ -77,21 +77,22 @@ class QuadModel:
         return quad_design(self.X, self.Y, np.asarray(p, np.float64), self.soft, self.line_px, self.halo_px,
                            self.xm, self.ym, self.xs)
 
-    @staticmethod
-    def _normal(a):
-        ata = a.T @ a
-        return ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata))
-
-    def _solve(self, a, z):
-        return np.linalg.solve(self._normal(a), a.T @ z)
-
     def residual(self, p):
+        """Residuals (noise units) at geometry ``p``, the brightnesses solved in closed form (kept for
+        :meth:`jacobian` and :meth:`region_levels` at the same ``p``)."""
         p = np.asarray(p, np.float64)
         a = self.design(p)
-        normal = self._normal(a)
+        ata = a.T @ a
+        normal = ata + 1e-9 * np.trace(ata) / len(ata) * np.eye(len(ata))
         coef = np.linalg.solve(normal, a.T @ self.z)
-        self._last = (p.copy(), a, normal, coef)        # the Jacobian is taken where the last residual was
+        self._last = (p.copy(), a, normal, coef)
         return (a @ coef - self.z) / self.noise
+
+    def _at(self, p):
+        """(design, normal matrix, brightnesses) at ``p``: those of the last residual when it was taken there."""
+        if self._last is None or not np.array_equal(self._last[0], p):
+            self.residual(p)
+        return self._last[1:]
 
     def jacobian(self, p, free, wr):
         """Variable-projection derivatives of :meth:`residual` by ``p[free]``, analytic, in one pass over the pixels.
@@ -103,20 +104,21 @@ class QuadModel:
         and the fit stalled where many pixels lie beyond the loss's scale.
         """
         p = np.asarray(p, np.float64)
-        if self._last is None or not np.array_equal(self._last[0], p):
-            self.residual(p)
-        _p, a, normal, coef = self._last
+        a, normal, coef = self._at(p)
         u = np.linalg.solve(normal, a.T @ wr)
         _a, d = quad_design_jac(self.X, self.Y, p, np.vstack([coef, u]), np.asarray(free, np.int64), self.soft,
                                 self.line_px, self.halo_px, self.xm, self.ym, self.xs)
         jac = (d[0] - a @ np.linalg.solve(normal, a.T @ d[0])) / self.noise
         return jac, d[1].T @ ((a @ coef - self.z) / self.noise)
 
+    def brightnesses(self, p):
+        """The 20 linear coefficients at ``p`` (facets' and surroundings' brightness, lines, glow, halo)."""
+        return self._at(np.asarray(p, np.float64))[2]
+
     def region_levels(self, p):
         """Mean brightness of each facet and of the surroundings (fitted), the residual RMS and the
         height of the glow along the edges (SEM edge effect), all in grey levels."""
-        a = self.design(p)
-        coef = self._solve(a, self.z)
+        a, _normal, coef = self._at(np.asarray(p, np.float64))
         lv = coef[:15].reshape(5, 3)[:, 0]
         return lv, float(np.sqrt(np.mean((a @ coef - self.z) ** 2))), float(coef[17])
 
@@ -158,5 +160,5 @@ def lm(model, p, step, n_iter, f_scale=3.0, bow_max=None, free=None):
 
 
 def soft_cost(r, f_scale=3.0):
-    """Soft-L1 cost of residuals (noise units), as :func:`_lm` minimises it (up to a constant)."""
+    """Soft-L1 cost of residuals (noise units), as :func:`lm` minimises it (up to a constant)."""
     return float(np.sum(np.sqrt(1 + (r / f_scale) ** 2)))
