@@ -18,6 +18,7 @@ _SINGLE = "tests/test_indent_single.py"
 _WIDE = "tests/test_independent_renders.py::test_single_ruled_imprint_with_wide_radial_cracks"
 
 _FB_CRACKS = "tests/test_independent_renders.py::test_feedback_render_cracks_do_not_carry_the_corners_out"
+_FB_CHIPS = "tests/test_independent_renders.py::test_feedback_render_chips_are_left_out_of_the_area"
 
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
@@ -502,5 +503,26 @@ MUTANTS_INDENTS = [
         "old": "    if np.hypot(*(apex - corners.mean(axis=0))) > MAX_APEX_OFF_CENTRE * _mean_diagonal(corners):\n",
         "new": "    if False:\n",
         "tests": ["tests/test_micrograph_independent.py::test_apex_adrift_where_the_ridges_do_not_show"],
+    },
+    {   # chips left in the contact area (session 19)
+        "name": "edges-chips-kept",
+        "file": "stages/indent_edges.py",
+        "old": "                out[run] = onto\n",
+        "new": "                pass\n",
+        "tests": [_FB_CHIPS],
+    },
+    {   # any outward run taken for a chip, without its flat floor (session 19)
+        "name": "edges-no-shelf-test",
+        "file": "stages/indent_edges.py",
+        "old": "            if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):\n",
+        "new": "            if True:\n",
+        "tests": ["tests/test_indent_edges.py"],
+    },
+    {   # the asymmetric term free from the first round: a chip at one end bends the curve out (session 19)
+        "name": "edges-asymmetric-from-start",
+        "file": "stages/indent_edges.py",
+        "old": "        if i < FIT_ITER:\n",
+        "new": "        if False:\n",
+        "tests": [_FB_CHIPS],
     },
 ]

@@ -23,6 +23,7 @@ def _numbers(f, k):
     return [("mean diagonal d (ISO 6507)", num(t["d_um"][k], "µm")),
             ("diagonals d1 / d2", f"{num(t['diag1_um'][k], 'µm')} / {num(t['diag2_um'][k], 'µm')}"),
             ("projected contact area", num(t["area_um2"][k], "µm²")),
+            ("chipped beside the edges (not in the area)", num(t["chipped_area_um2"][k], "µm²")),
             ("depth (far-field plane to measured floor)", num(t["depth_nm"][k], "nm")),
             ("apex depth (facet model)", num(t["apex_depth_nm"][k], "nm")),
             ("H/D", num(t["hd_ratio"][k], "")),

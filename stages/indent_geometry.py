@@ -16,7 +16,7 @@ __all__ = ["circle_fit", "Imprint", "IMPRINT_FIELDS", "diagonals", "inside_polyg
 #: per-imprint fields (``Imprint`` attributes that go into indents.csv)
 IMPRINT_FIELDS = ("x_um", "y_um", "diameter_um", "diag1_um", "diag2_um", "d_um", "area_um2", "depth_nm",
                   "apex_depth_nm", "hd_ratio", "orientation_deg", "pileup_nm", "pileup_volume_um3", "edge_bow",
-                  "cut_by_border")
+                  "cut_by_border", "chipped_area_um2")
 
 
 def circle_fit(points: np.ndarray) -> tuple:
@@ -78,6 +78,7 @@ class Imprint:
     contour_um: np.ndarray | None = None    # contact boundary (m, 2)
     floor_um: tuple | None = None           # (x, y) of the floor
     floor_share: float = float("nan")       # share of the pit deeper than 80 % of its depth (AFM)
+    chipped_area_um2: float = float("nan")  # AFM: chips beside the edges, left out of area_um2
 
     @property
     def d_um(self) -> float:

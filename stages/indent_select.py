@@ -61,7 +61,8 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
     extra = dict(area_um2=single.area_um2, pileup_volume_um3=single.pileup_volume_um3,
                  edge_bow=float(np.nanmean(single.edge_bow)) if np.isfinite(single.edge_bow).any() else nan,
                  cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
-                 apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share)
+                 apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share,
+                 chipped_area_um2=single.chipped_area_um2)
     if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
         if np.isfinite(single.depth_nm) and rounding_px(facet, pixel_um) >= 1.0:
             # the rounded floor is resolved by the pixels: depth to the measured floor (the lowest
@@ -146,8 +147,12 @@ AREA_RATIO_RANGE = (0.6, 1.4)
 
 
 def _no_quadrilateral(m) -> bool:
-    """True for an AFM pit whose contact area is outside ``AREA_RATIO_RANGE`` of d^2 / 2 (NaN: no judgement)."""
-    ratio = m.area_um2 / (0.5 * m.d_um ** 2)
+    """True for an AFM pit whose contact area is outside ``AREA_RATIO_RANGE`` of d^2 / 2 (NaN: no judgement).
+
+    The area as the boundary encloses it, chips included (the range was measured so; a pit that is no
+    imprint is not made one by its edges drawn past what sticks out of them).
+    """
+    ratio = (m.area_um2 + np.nan_to_num(m.chipped_area_um2)) / (0.5 * m.d_um ** 2)
     return bool(np.isfinite(ratio) and not AREA_RATIO_RANGE[0] <= ratio <= AREA_RATIO_RANGE[1])
 
 

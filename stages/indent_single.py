@@ -22,6 +22,7 @@ from scipy import ndimage
 
 from .indent_corners import (VALLEY_END_SLOPES, bilinear, corner_on_ray, fill_cracks, region_pts, tongue_mask,
                              unless_crack)
+from .indent_edges import edges_past_chips, shoelace
 from .indent_geometry import circle_fit, diagonals, inside_polygon, robust_plane
 
 __all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "measure_single", "facet_apex_nm",
@@ -42,7 +43,8 @@ INDENTERS = {"vickers": Indenter("vickers", 4, 0.1891)}
 VICKERS = INDENTERS["vickers"]
 
 #: per-imprint single-metrology fields that go into indents.csv
-SINGLE_FIELDS = ("d_um", "area_um2", "apex_depth_nm", "pileup_volume_um3", "edge_bow", "cut_by_border")
+SINGLE_FIELDS = ("d_um", "area_um2", "apex_depth_nm", "pileup_volume_um3", "edge_bow", "cut_by_border",
+                 "chipped_area_um2")
 
 
 def hardness_hv(load_mN: float, d_um, indenter: Indenter = VICKERS):
@@ -56,7 +58,7 @@ class SingleImprint:
     """One imprint measured as a hardness lab does (lengths µm, heights nm, image frame).
 
     ``corners_um`` (4, 2) around the imprint; ``contour_um`` the contact boundary (closed
-    polyline); ``edge_bow`` (4,) mid-edge displacement / (d/2), outward positive, edge k
+    polyline), drawn past chips beside the edges, whose area is ``chipped_area_um2``; ``edge_bow`` (4,) mid-edge displacement / (d/2), outward positive, edge k
     from corner k to k + 1; ``floor_um`` where the floor is; ``floor_share`` the share of the pit
     deeper than 80 % of its depth (a pyramid 0.03-0.07, a flat-bottomed pit more).
     """
@@ -79,6 +81,7 @@ class SingleImprint:
     contour_um: np.ndarray = field(repr=False)
     n_pixels: int = 0
     floor_share: float = float("nan")    # share of the pit deeper than 80 % of its depth
+    chipped_area_um2: float = 0.0         # chips spalled beside the edges, outside the contact area
 
 
 # ----------------------------------------------------------------------------- levelling
@@ -345,10 +348,12 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     cut = bool(cut or outside)
     d1, d2, orient = diagonals(corners_um)
     cx, cy, crad = circle_fit(corners_um)
-    cont_um = cont_rc[:, ::-1] * pixel_um
-    area = float("nan") if cut else _shoelace(cont_um)
-    # edge bow: mid-edge displacement from each corner-to-corner chord, outward positive
     d_um = (d1 + d2) / 2
+    # chips spalled beside the edges (glass): the edges drawn past them, as an operator does
+    chips = edges_past_chips(cont_rc[:, ::-1] * pixel_um, corners_um, pixel_um, d_um, zs, (r0, c0), slope_px)
+    cont_um = chips.contour_um
+    area = float("nan") if cut else shoelace(cont_um)
+    # edge bow: mid-edge displacement from each corner-to-corner chord, outward positive
     bows = np.full(nc, np.nan)
     for j in range(nc):
         p0, p1 = corners_um[j], corners_um[(j + 1) % nc]
@@ -373,7 +378,8 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
                          orientation_deg=float(orient), area_um2=area, depth_nm=float(depth),
                          floor_um=(float(fc * pixel_um), float(fr * pixel_um)), pileup_nm=pileup,
                          pileup_volume_um3=vol, edge_bow=bows, cut_by_border=cut, contour_um=cont_um,
-                         n_pixels=int(pit.sum()), floor_share=float(np.mean(zs[pit] < -0.8 * depth)))
+                         n_pixels=int(pit.sum()), floor_share=float(np.mean(zs[pit] < -0.8 * depth)),
+                         chipped_area_um2=chips.chipped_area_um2)
 
 
 def facet_apex_nm(z_nm: np.ndarray, pixel_um: float, imprint: SingleImprint, inset: float = 0.2) -> float:
@@ -410,7 +416,3 @@ def facet_apex_nm(z_nm: np.ndarray, pixel_um: float, imprint: SingleImprint, ins
     x, y, z = np.linalg.lstsq(a, -p[:, 2], rcond=None)[0]
     return float(-z)
 
-
-def _shoelace(p):
-    x, y = p[:, 0], p[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

@@ -156,9 +156,9 @@ ALLOWED_EMPTY = (
     (r"^summary\.json$", r"^(n_neurons|spread_mm|mse_goal_mm2|predicted_residual_\w*)$",
      "docs/scan.md summary.json: null for the galvo models"),
     (r"^(indents|sizes)\.csv$", r"^(row|col|dx_um|dy_um|depth_nm|hd_ratio|pileup_nm|pileup_volume_um3|apex_depth_nm|"
-                                 r"area_um2|edge_bow|hv|mean_hd|sd_hd|mean_depth_nm)$",
+                                 r"area_um2|edge_bow|chipped_area_um2|hv|mean_hd|sd_hd|mean_depth_nm)$",
      "docs/indents.md indents.csv: row/col/dx/dy empty without a spec; heights (depth, H/D, pile-up, apex depth, "
-     "area, edge bow) empty for OM; area NaN when cut; hv empty without a load"),
+     "area, edge bow, chipped area) empty for OM; area NaN when cut; hv empty without a load"),
     (r"^summary\.json$", r"^(mean_depth_nm|mean_hd|mean_pileup_nm|mean_apex_depth_nm|mean_area_um2|noise_nm|tilt_deg|"
                           r"mean_hv|load_mN)$",
      "docs/indents.md summary.json: the height figures are empty for OM; hv and the load without a load"),

@@ -1,0 +1,195 @@
+"""Edges of a single imprint between its corners, and the chips spalled beside them.
+
+Brittle materials (glass, ceramics) spall beside a Vickers imprint's edges (lateral cracks): a
+flat-bottomed chip tens to hundreds of nm deep that the contact boundary at the surface level runs
+round. An operator draws the imprint's edge past it. :func:`edges_past_chips` does the same: each
+edge between two corners is a smooth curve through them (bowed in by sink-in or out by pile-up),
+fitted to the boundary where it follows the edge; where the boundary leaves the curve outwards by
+more than a chip's least width over a flat shelf (a facet's own wiggle slopes as the facet does), the run is
+taken back onto the curve and its area counted as chipped.
+
+Frame: (x, y) µm, the contour a closed polyline, the corners in order around the imprint.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .indent_geometry import inside_polygon
+
+__all__ = ["EdgesPastChips", "edges_past_chips", "shoelace"]
+
+FIT_ITER = 8               # rounds of the edge fit, the outward tolerance shrinking each round
+START_TOL_HALF_D = 0.10    # first round: points within this of the chord (of d/2; bows reach 0.08)
+TOL_PX = 1.0               # final tolerance: the boundary's roughness and the curve's misfit (px) ...
+TOL_HALF_D = 0.015         # ... or this of d/2, the larger
+CHIP_MIN_PX = 3.0          # a chip stands out of the edge by this (px) ...
+CHIP_MIN_HALF_D = 0.06     # ... and this of d/2 at least (the feedback renderer's chips: 0.1-0.3 of d/2)
+CORNER_KEEP_T = 0.04       # the boundary this close to a corner (fraction of the edge) is the corner's own
+SHELF_SLOPES = 0.5         # a chip's floor is a shelf: a tenth of the region or more sloping under half a facet's
+SHELF_SHARE = 0.1          # slope (its walls, smeared by the z loop, take the rest: 25-75 % on the feedback
+                           # renderer's chips; 0 % on a facet's S-bend at a shear step, feedback seed 9)
+
+
+@dataclass(frozen=True)
+class EdgesPastChips:
+    """The contact boundary with chips taken back onto the edges, and what was taken.
+
+    ``contour_um`` (n, 2) the boundary, chips replaced by the fitted edges; ``chipped_area_um2`` the
+    area between the two (0 without chips); ``chipped_edges`` the edges (k: corner k to k + 1) that had one.
+    """
+
+    contour_um: np.ndarray
+    chipped_area_um2: float
+    chipped_edges: tuple
+
+
+def _edge_frame(p0, p1, centre):
+    chord = p1 - p0
+    ln = float(np.hypot(*chord))
+    e = chord / ln
+    nrm = np.array([e[1], -e[0]])
+    if nrm @ ((p0 + p1) / 2 - centre) < 0:
+        nrm = -nrm
+    return e, nrm, ln
+
+
+def _curve(t, coef):
+    """Offset (outward) of the edge at fraction t of its chord: t (1 - t) (a + b t), zero at both corners."""
+    return t * (1 - t) * (coef[0] + coef[1] * t)
+
+
+def _fit_edge(t, off, half_d, tol):
+    """Edge curve fitted to the boundary points that lie on it.
+
+    Started from the chord; each round keeps the points within a tolerance of the last curve,
+    shrinking from a tenth of d/2 (beyond any bow, within most chips' width) to ``tol``: the majority of the
+    edge, neither a chip outwards nor a notch inwards. A symmetric bow first (a chip at one end would
+    otherwise bend the curve's asymmetric term out to it), then both terms on the points left.
+    """
+    coef = np.zeros(2)
+    a = np.column_stack([t * (1 - t), t * t * (1 - t)])
+    for i in range(FIT_ITER + 2):
+        lim = START_TOL_HALF_D * half_d + (tol - START_TOL_HALF_D * half_d) * min(i / (FIT_ITER - 1), 1.0)
+        keep = np.abs(off - _curve(t, coef)) < lim
+        if keep.sum() < 6:
+            break
+        if i < FIT_ITER:
+            coef = np.array([np.linalg.lstsq(a[keep, :1], off[keep], rcond=None)[0][0], 0.0])
+        else:
+            coef = np.linalg.lstsq(a[keep], off[keep], rcond=None)[0]
+    return coef
+
+
+def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: float, d_um: float,
+                     heights_nm: np.ndarray, origin_rc, facet_slope_nm_px: float) -> EdgesPastChips:
+    """The contact boundary drawn past chips beside the edges (see the module's text).
+
+    Parameters
+    ----------
+    contour_um : ndarray (n, 2)
+        Closed contact boundary, (x, y) µm.
+    corners_um : ndarray (k, 2)
+        The imprint's corners in order around it.
+    pixel_um, d_um : float
+        Pixel size and mean diagonal (µm).
+    heights_nm : ndarray
+        Smoothed levelled heights of the window around the imprint (nm).
+    origin_rc : (int, int)
+        The window's first row and column in the map.
+    facet_slope_nm_px : float
+        The facets' typical slope (nm per pixel).
+
+    Returns
+    -------
+    EdgesPastChips
+    """
+    c = np.asarray(contour_um, float)
+    k = len(corners_um)
+    centre = np.mean(corners_um, axis=0)
+    half_d = d_um / 2
+    tol = max(TOL_PX * pixel_um, TOL_HALF_D * half_d)
+    chip_min = max(CHIP_MIN_PX * pixel_um, CHIP_MIN_HALF_D * half_d)
+    ang = np.arctan2(*(c - centre).T[::-1])
+    cang = np.arctan2(*(np.asarray(corners_um) - centre).T[::-1])
+    out = c.copy()
+    chipped = []
+    for j in range(k):
+        p0, p1 = np.asarray(corners_um[j], float), np.asarray(corners_um[(j + 1) % k], float)
+        e, nrm, ln = _edge_frame(p0, p1, centre)
+        # the boundary's points between the two corners' directions (the sector of this edge)
+        span = (cang[(j + 1) % k] - cang[j]) % (2 * np.pi)
+        rel_ang = (ang - cang[j]) % (2 * np.pi)
+        forward = span < np.pi
+        sec = (rel_ang < span) if forward else (rel_ang > span)
+        t = (c - p0) @ e / ln
+        off = (c - p0) @ nrm
+        sec &= (t > CORNER_KEEP_T) & (t < 1 - CORNER_KEEP_T)
+        if sec.sum() < 8:
+            continue
+        coef = _fit_edge(t[sec], off[sec], half_d, tol)
+        resid = np.full(len(c), np.nan)
+        resid[sec] = off[sec] - _curve(t[sec], coef)
+        moved = False
+        for run in _runs(np.where(sec, resid > tol, False)):
+            if np.nanmax(resid[run]) < chip_min:
+                continue
+            run = _grow(run, sec, resid, tol)
+            tt = np.clip(t[run], 0.0, 1.0)
+            onto = p0 + np.outer(tt * ln, e) + np.outer(_curve(tt, coef), nrm)
+            between = np.vstack([c[run], onto[::-1]]) / pixel_um - np.asarray(origin_rc)[::-1]
+            if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):
+                out[run] = onto
+                moved = True
+        if moved:
+            chipped.append(j)
+    area = shoelace(c) - shoelace(out) if chipped else 0.0
+    return EdgesPastChips(contour_um=out, chipped_area_um2=float(max(area, 0.0)), chipped_edges=tuple(chipped))
+
+
+def _is_shelf(rows, cols, z, slope):
+    """True when SHELF_SHARE of the region inside the polygon (rows, cols) of ``z`` slopes under SHELF_SLOPES facets."""
+    ny, nx = z.shape
+    r0, c0 = max(int(np.floor(rows.min())) - 1, 0), max(int(np.floor(cols.min())) - 1, 0)
+    r1, c1 = min(int(np.ceil(rows.max())) + 2, ny), min(int(np.ceil(cols.max())) + 2, nx)
+    if r1 - r0 < 3 or c1 - c0 < 3:
+        return False
+    inside = inside_polygon(rows - r0, cols - c0, (r1 - r0, c1 - c0))
+    if inside.sum() < 4:
+        return False
+    gr, gc = np.gradient(z[r0:r1, c0:c1])
+    return bool(np.mean(np.hypot(gr, gc)[inside] < SHELF_SLOPES * slope) >= SHELF_SHARE)
+
+
+def _runs(flag):
+    """Index arrays of the runs of True in a closed sequence (a run across the end is one run)."""
+    n = len(flag)
+    if not flag.any():
+        return []
+    if flag.all():
+        return [np.arange(n)]
+    start = int(np.argmin(flag))                 # a False: no run crosses the start
+    idx = (np.arange(n) + start) % n
+    f = flag[idx]
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], f.astype(int), [0]])))
+    return [idx[a:b] for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _grow(run, sec, resid, tol):
+    """A chip's run widened over its neighbours off the curve (the chip's notch into the edge at its ends)."""
+    n = len(resid)
+    lo, hi = int(run[0]), int(run[-1])
+    ext = list(run)
+    for step, i0 in ((-1, lo), (1, hi)):
+        i = (i0 + step) % n
+        while sec[i] and abs(resid[i]) > tol and len(ext) < n:
+            ext.insert(0, i) if step < 0 else ext.append(i)
+            i = (i + step) % n
+    return np.array(ext)
+
+
+def shoelace(p):
+    """Area enclosed by a closed polygon (n, 2)."""
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))

@@ -1,0 +1,73 @@
+"""stages/indent_edges.py: the edges drawn past chips, on boundaries whose areas are known in closed form."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from markcal.stages.indent_edges import edges_past_chips, shoelace
+
+PX_UM = 0.1
+HALF_D_UM = 10.0
+CENTRE = np.array([12.0, 12.0])
+BUMP_HALF_LEN_UM, BUMP_OUT_UM = 2.0, 1.0        # a half-ellipse on edge 0: area pi / 2 * 2 * 1 um^2
+
+
+def _diamond(bump: bool, bow: float = 0.0):
+    """The closed boundary of a diamond of diagonals 2 x HALF_D_UM and its corners in order: every edge bowed out
+    by 4 bow (d/2) t (1 - t) (negative: in), edge 0 (corner 0 to 1) with a half-ellipse bulging out at its middle."""
+    corners = CENTRE + HALF_D_UM * np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
+    pts = []
+    for k in range(4):
+        p0, p1 = corners[k], corners[(k + 1) % 4]
+        ln = np.hypot(*(p1 - p0))
+        e = (p1 - p0) / ln
+        nrm = np.array([e[1], -e[0]])
+        nrm = nrm if nrm @ ((p0 + p1) / 2 - CENTRE) > 0 else -nrm
+        s = np.arange(0.0, ln, 0.02)
+        u = (s - ln / 2) / BUMP_HALF_LEN_UM
+        off = 4 * bow * HALF_D_UM * (s / ln) * (1 - s / ln)
+        if bump and k == 0:
+            off = off + BUMP_OUT_UM * np.sqrt(np.clip(1 - u * u, 0, 1))
+        pts.append(p0 + np.outer(s, e) + np.outer(off, nrm))
+    return np.vstack(pts), corners
+
+
+def _heights(slope_nm_px):
+    """A 240 x 240 window: flat (a chip's floor everywhere) or sloping as a facet does."""
+    rr, cc = np.mgrid[0:240, 0:240].astype(float)
+    return -100.0 + slope_nm_px * (rr + cc) / np.sqrt(2)
+
+
+def test_chip_on_a_flat_floor_is_taken_back_onto_the_edge():
+    c, corners = _diamond(bump=True)
+    got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, _heights(0.0), (0, 0), 10.0)
+    bump_um2 = np.pi / 2 * BUMP_HALF_LEN_UM * BUMP_OUT_UM
+    assert got.chipped_edges == (0,)
+    assert got.chipped_area_um2 == pytest.approx(bump_um2, rel=0.03)
+    assert shoelace(got.contour_um) == pytest.approx(2 * HALF_D_UM ** 2, rel=0.002)
+
+
+def test_bulge_over_a_sloping_facet_is_no_chip():
+    """The same bulge where the surface slopes as the facets do (a facet's own S-bend): left as it is."""
+    c, corners = _diamond(bump=True)
+    got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, _heights(10.0), (0, 0), 10.0)
+    assert got.chipped_edges == () and got.chipped_area_um2 == 0.0
+    assert np.array_equal(got.contour_um, c)
+
+
+@pytest.mark.parametrize("bow", [-0.08, 0.08])
+def test_bowed_edges_without_chips_are_left_alone(bow):
+    """Edges bowed in (sink-in) or out (pile-up) by 8 % of d/2, over a flat floor: no chip."""
+    c, corners = _diamond(bump=False, bow=bow)
+    got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, _heights(0.0), (0, 0), 10.0)
+    assert got.chipped_edges == () and np.array_equal(got.contour_um, c)
+
+
+@pytest.mark.parametrize("bow", [-0.08, 0.08])
+def test_chip_on_a_bowed_edge(bow):
+    """The chip on an edge bowed by 8 % of d/2: taken back onto the bowed edge, not onto the chord."""
+    c, corners = _diamond(bump=True, bow=bow)
+    got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, _heights(0.0), (0, 0), 10.0)
+    whole, _ = _diamond(bump=False, bow=bow)
+    assert got.chipped_edges == (0,)
+    assert got.chipped_area_um2 == pytest.approx(shoelace(c) - shoelace(whole), rel=0.03)
