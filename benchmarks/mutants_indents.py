@@ -179,8 +179,8 @@ MUTANTS_INDENTS = [
     {   # the first round's surface fitted through the line offsets of a row-flattened scan (session 14)
         "name": "level-first-surface-through-offsets",
         "file": "stages/indent_level.py",
-        "old": "        surf = poly_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep),\n",
-        "new": "        surf = poly_surface(z, keep, _bow_degree(keep),\n",
+        "old": "        surf = _trimmed_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep), sigma)\n",
+        "new": "        surf = _trimmed_surface(z, keep, _bow_degree(keep), sigma)\n",
         "tests": ["tests/test_independent_renders.py::test_flattened_scan_cropped_afterwards"],
     },
     {   # a clipped floor taken for a flat-bottomed pit (a grating's): the imprint refused (session 15)
@@ -353,7 +353,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "    if cells.sum() >= 10:\n",
         "new": "    if True:\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers",
+                  "tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn"],
     },
     {   # the diagonals' direction from the boundary's far points again (session 13)
         "name": "single-diagonals-from-outline",
@@ -524,5 +525,12 @@ MUTANTS_INDENTS = [
         "old": "        if i < FIT_ITER:\n",
         "new": "        if False:\n",
         "tests": [_FB_CHIPS],
+    },
+    {   # a round's far-field surface fitted once, pile-up tails and all (session 19)
+        "name": "level-round-surface-untrimmed",
+        "file": "stages/indent_level.py",
+        "old": "def _trimmed_surface(z, keep, degree, sigma, n_trim=3):\n",
+        "new": "def _trimmed_surface(z, keep, degree, sigma, n_trim=0):\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails"],
     },
 ]

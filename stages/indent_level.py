@@ -16,6 +16,7 @@ from .level import Levelled, _remove_scars, _row_nanmedian, noise_nm, poly_surfa
 
 __all__ = ["level_single"]
 
+TRIM_SPREADS = 3.0          # a round's surface refitted without the far-field pixels this many spreads off it
 RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above which its bow is fitted first
 
 
@@ -79,8 +80,7 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
             keep = valid & ring if it == 0 else prev
         # the first round's surface under the side strips' line offsets when they made its mask: offsets of
         # hundreds of nm (a scan flattened line by line, imprint and all) bent a quadratic 240 nm
-        surf = poly_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep),
-                            step=1 if keep.sum() < 3000 else 2)
+        surf = _trimmed_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep), sigma)
         if it == 0:
             bow = float(np.ptp((surf + ring_bow)[keep])) if keep.any() else 0.0
         surf_total += surf
@@ -112,6 +112,24 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
     z -= np.median(z[keep]) if keep.any() else 0.0
     z[~valid] = np.nan
     return Levelled(z_nm=z, mask=~keep, noise_nm=float(sigma), tilt_deg=tilt_deg, bow_nm=bow, scars=scars)
+
+
+def _trimmed_surface(z, keep, degree, sigma, n_trim=3):
+    """The far-field surface of one round, refitted without the pixels ``TRIM_SPREADS`` robust spreads off it."""
+    import os
+    use = keep
+    for _ in range(n_trim + 1):
+        surf = poly_surface(z, use, degree, step=1 if use.sum() < 3000 else 2)
+        if os.environ.get("NOTRIM"):
+            return surf
+        res = (z - surf)[keep]
+        med = np.median(res)
+        spread = max(1.4826 * np.median(np.abs(res - med)), sigma)
+        nxt = keep & (np.abs(z - surf - med) <= TRIM_SPREADS * spread)
+        if nxt.sum() < 0.5 * keep.sum() or np.array_equal(nxt, use):
+            break
+        use = nxt
+    return surf
 
 
 def _bow_degree(keep):
