@@ -56,6 +56,9 @@ def _map(f, m):
             ax.axhline(yb, color="orange", lw=0.8, ls="--", label=f"information bar ({bar} rows) left out")
     if m.contour_um is not None and f.kind == "afm":
         ax.plot(m.contour_um[:, 0], m.contour_um[:, 1], "-", color="cyan", lw=0.9, label="contact boundary")
+    for i, chip in enumerate(m.chips_um or ()):
+        ax.fill(chip[:, 0], chip[:, 1], facecolor="none", edgecolor="magenta", hatch="////", lw=0.9,
+                label="chip (not in the area)" if i == 0 else None)
     c = m.corners_um
     for a, b in ((0, 2), (1, 3)):
         ax.plot(c[[a, b], 0], c[[a, b], 1], "--", color="white", lw=0.8)
@@ -63,7 +66,9 @@ def _map(f, m):
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
     ax.legend(loc="upper right", fontsize=7)
-    what = ("contact boundary at the original-surface level (cyan), pile-up above 5 noise levels (green)."
+    what = ("contact boundary at the original-surface level (cyan), pile-up above 5 noise levels (green)"
+            + (", chips spalled beside the edges, drawn past and left out of the area (magenta, hatched)."
+               if m.chips_um else ".")
             if f.kind == "afm" else "information bar left out (orange dashed) where there is one.")
     cap = f"<code>{esc(os.path.basename(f.source))}</code>: corners (red), diagonals (white dashed), {what}"
     return img(png_b64(fig), f.source, cap)

@@ -37,12 +37,14 @@ class EdgesPastChips:
     """The contact boundary with chips taken back onto the edges, and what was taken.
 
     ``contour_um`` (n, 2) the boundary, chips replaced by the fitted edges; ``chipped_area_um2`` the
-    area between the two (0 without chips); ``chipped_edges`` the edges (k: corner k to k + 1) that had one.
+    area between the two (0 without chips); ``chipped_edges`` the edges (k: corner k to k + 1) that had one;
+    ``chips_um`` each chip's outline (m, 2): the boundary round it, back along the edge.
     """
 
     contour_um: np.ndarray
     chipped_area_um2: float
     chipped_edges: tuple
+    chips_um: tuple = ()
 
 
 def _edge_frame(p0, p1, centre):
@@ -114,7 +116,7 @@ def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: f
     ang = np.arctan2(*(c - centre).T[::-1])
     cang = np.arctan2(*(np.asarray(corners_um) - centre).T[::-1])
     out = c.copy()
-    chipped = []
+    chipped, outlines = [], []
     for j in range(k):
         p0, p1 = np.asarray(corners_um[j], float), np.asarray(corners_um[(j + 1) % k], float)
         e, nrm, ln = _edge_frame(p0, p1, centre)
@@ -141,11 +143,13 @@ def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: f
             between = np.vstack([c[run], onto[::-1]]) / pixel_um - np.asarray(origin_rc)[::-1]
             if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):
                 out[run] = onto
+                outlines.append(np.vstack([c[run], onto[::-1]]))
                 moved = True
         if moved:
             chipped.append(j)
     area = shoelace(c) - shoelace(out) if chipped else 0.0
-    return EdgesPastChips(contour_um=out, chipped_area_um2=float(max(area, 0.0)), chipped_edges=tuple(chipped))
+    return EdgesPastChips(contour_um=out, chipped_area_um2=float(max(area, 0.0)), chipped_edges=tuple(chipped),
+                          chips_um=tuple(outlines))
 
 
 def _is_shelf(rows, cols, z, slope):

@@ -62,7 +62,7 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
                  edge_bow=float(np.nanmean(single.edge_bow)) if np.isfinite(single.edge_bow).any() else nan,
                  cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
                  apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share,
-                 chipped_area_um2=single.chipped_area_um2)
+                 chipped_area_um2=single.chipped_area_um2, chips_um=single.chips_um)
     if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
         if np.isfinite(single.depth_nm) and rounding_px(facet, pixel_um) >= 1.0:
             # the rounded floor is resolved by the pixels: depth to the measured floor (the lowest
