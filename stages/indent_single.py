@@ -88,6 +88,7 @@ class SingleImprint:
 # ----------------------------------------------------------------------------- levelling
 
 FLOOR_MISFIT_NM = 2.0
+OPEN_SWEEP_MIN = 1.5    # an open boundary going this many half-turns round the floor is the imprint's whole boundary
 
 
 # ----------------------------------------------------------------------------- measuring
@@ -143,15 +144,18 @@ def _boundary(zb, level, inside_rc):
         if closed and not Path(c[:, ::-1]).contains_point(inside_rc[::-1]):
             continue
         if not closed:
-            # an open contour around the floor: the border cuts the imprint
+            # an open contour around the floor: the border cuts the imprint; one that goes under three
+            # quarters round it is one of several pieces (radial cracks run to the border from two or more
+            # corners), or the border takes off a corner: closed along the border below
             ang = np.unwrap(np.arctan2(c[:, 0] - inside_rc[0], c[:, 1] - inside_rc[1]))
-            if abs(ang[-1] - ang[0]) < np.pi:
+            if abs(ang[-1] - ang[0]) < OPEN_SWEEP_MIN * np.pi:
                 continue
         if best is None or (closed and best_cut) or (closed == (not best_cut) and len(c) < best_len):
             best, best_len, best_cut = c, len(c), not closed
     if best is None:
-        # no one contour goes half round the floor: the border cuts the boundary into pieces (an imprint
-        # filling the map, its far field a little below the level where it meets the border). Closed along
+        # no one contour goes three quarters round the floor: the border cuts the boundary into pieces (an
+        # imprint filling the map, its far field a little below the level where it meets the border; cracks
+        # from several corners to the border, feedback seed 26), or takes off a corner. Closed along
         # the border instead: the map ringed by a pixel above the level (the pieces and the border between
         # them enclose the floor); flagged as cut
         ring = np.pad(zb, 1, constant_values=abs(level) + 1.0)

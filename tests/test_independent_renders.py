@@ -398,6 +398,22 @@ def test_feedback_render_facet_wiggle_is_no_chip(tmp_path):
     assert abs(area) <= 2.5, area
 
 
+def test_cracks_from_three_corners_to_the_border_are_measured_and_flagged(tmp_path):
+    """Feedback seed 26 (79 % fill): radial cracks, smeared wide by the z loop, run from three corners to the
+    border and cut the contact boundary into three pieces. The piece round the right half went half round
+    the floor and was taken for the whole boundary; the left corner had no boundary beside it: `no imprint
+    found`. A piece must now go three quarters round; the pieces are closed along the border, two cracks'
+    tongues are lifted out, and the imprint is measured and flagged as cut (the third crack still carries its
+    corner to the border: d +9.7 %; diagonal 1 +2.1 %)."""
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    r = render_feedback(26)
+    gsf, _ = write_feedback(r, str(tmp_path), "fb26")
+    tab = run_indents([gsf], None, IndentsOptions()).indents
+    assert len(tab["x_um"]) == 1 and tab["cut_by_border"][0] == 1
+    # diagonal 1, left corner (its crack lifted out) to right: within the real-map goal (3 %)
+    assert abs(tab["diag1_um"][0] / r.truth["diag1_um"] - 1) <= 0.03, (tab["diag1_um"][0], r.truth["diag1_um"])
+
+
 def test_boundary_cut_into_pieces_by_the_border_is_measured_and_flagged(tmp_path):
     """Feedback-renderer seed 14: the imprint fills 87 % of the map, its far field meets the border a little
     below the contour's level, and the border cuts the contact boundary into three pieces, none going half
