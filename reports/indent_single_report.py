@@ -22,6 +22,8 @@ def _numbers(f, k):
     cut = "yes: cut by the border, not measured whole" if t["cut_by_border"][k] else "no"
     return [("mean diagonal d (ISO 6507)", num(t["d_um"][k], "µm")),
             ("diagonals d1 / d2", f"{num(t['diag1_um'][k], 'µm')} / {num(t['diag2_um'][k], 'µm')}"),
+            ("diagonals differ by (ISO 6507-1: at most 5 % on a flat surface)",
+             f"{num(t['diagonal_difference_pct'][k], '')} % of d"),
             ("projected contact area", num(t["area_um2"][k], "µm²")),
             ("chipped beside the edges (not in the area)", num(t["chipped_area_um2"][k], "µm²")),
             ("depth (far-field plane to measured floor)", num(t["depth_nm"][k], "nm")),

@@ -12,6 +12,7 @@ import os
 import numpy as np
 
 from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.pipeline.flows.indents import DIAGONALS_DIFFER_PCT
 from markcal.stages.indent_om import RESOLUTION_RADII
 
 __all__ = ["indents_report_html"]
@@ -237,6 +238,15 @@ def indents_report_html(res) -> str:
                      "is taken from their neighbours, so the depth and the contact area can be off by several "
                      "percent, up to 30 % where pile-up lobes reach the border (docs/indents.md, \"The flatten "
                      "recognised and undone\"). An export without the flatten avoids it.</div>")
+    if s.get("n_diagonals_differ"):
+        which = [f"<code>{esc(os.path.basename(str(t['file'][k])))}</code> #{int(t['id'][k])} "
+                 f"({num(t['diagonal_difference_pct'][k], '')} %)"
+                 for k in np.flatnonzero(t["diagonal_difference_pct"] > DIAGONALS_DIFFER_PCT)]
+        more = f" and {len(which) - 12} more" if len(which) > 12 else ""
+        parts.append(f'<div class="warn"><b>{s["n_diagonals_differ"]} imprint(s) whose diagonals differ by more than '
+                     f'{DIAGONALS_DIFFER_PCT:g} % of their mean:</b> {", ".join(which[:12])}{more}. ISO 6507-1 asks '
+                     "that this be stated in the test report: on a flat surface it means a tilted sample, or a corner "
+                     "that a crack or a chip carried out (check the corners on the map).</div>")
     from .indent_single_report import single_section
     parts.append(single_section(res.files))
     if s["nominal_inferred"]:

@@ -379,6 +379,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
     for f in ind.IMPRINT_FIELDS[2:]:
         table[f] = np.array([getattr(m, f) for m in imps])
     table["cut_by_border"] = table["cut_by_border"].astype(int)
+    table["diagonal_difference_pct"] = 100 * np.abs(table["diag1_um"] - table["diag2_um"]) / table["d_um"]
     load = opt.load_mN if opt.load_mN is not None else (spec.load_mN if spec is not None else None)
     table["hv"] = (hardness_hv(load, table["d_um"], INDENTERS[spec.indenter if spec else "vickers"])
                    if load is not None else np.full(len(imps), np.nan))
@@ -445,6 +446,9 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "mean_hv": _nanmean(t["hv"]),
         "load_mN": files[0].info.get("load_mN"),
         "n_cut_by_border": int(np.sum(t["cut_by_border"])),
+        # ISO 6507-1: on a flat surface the diagonals should differ by at most 5 % of their mean, and a larger
+        # difference is stated in the test report (a tilted sample, or a corner carried out by a crack or chip)
+        "n_diagonals_differ": int(np.sum(t["diagonal_difference_pct"] > DIAGONALS_DIFFER_PCT)),
         **_resolution(files),
         "runtime_s": runtime_s,
     }
@@ -462,6 +466,9 @@ def _resolution(files) -> dict:
     return {"optics_resolution_um": float(np.median(r)),
             "n_near_resolution": int(np.sum(d < ind.RESOLUTION_RADII * r))}
 
+
+#: diagonals differing by more than this (% of their mean) are stated in the report (ISO 6507-1)
+DIAGONALS_DIFFER_PCT = 5.0
 
 #: extensions of the height maps and micrographs the flow reads (others are recognised by content)
 MAP_EXTENSIONS = (".tif", ".tiff", ".png", ".jpg", ".jpeg", ".bmp", ".gsf", ".gwy", ".ibw", ".spm", ".nid", ".jpk",
