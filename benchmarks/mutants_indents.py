@@ -376,7 +376,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "        sec = np.abs(dphi) < np.pi / (3 * nc)\n",
         "new": "        sec = np.abs(dphi) < np.pi / nc\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner",
+                  "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
     },
     {   # squares under the minimum diagonal scored again: a dust blob wins on the real SEM image (session 13)
         "name": "squares-under-minimum-size",
@@ -447,7 +448,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_corners.py",
         "old": "    if converged and np.hypot(*(walked - corner)) > CRACK_TONGUE_PX:\n",
         "new": "    if False:\n",
-        "tests": [_FB_CRACKS],
+        "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
     },
     {   # the trace along rays from the apex, not anchored on the valley's bottom (session 17)
         "name": "corners-trace-from-apex-rays",
