@@ -8,7 +8,8 @@ from markcal.reports.indents_report import indents_report_html
 INDENT_COLUMNS = ("id", "row", "col", "x_um", "y_um", "dx_um", "dy_um", "diameter_um", "diag1_um", "diag2_um",
                   "depth_nm", "hd_ratio", "orientation_deg", "pileup_nm",
                   "d_um", "area_um2", "apex_depth_nm", "hv", "pileup_volume_um3", "edge_bow", "cut_by_border",
-                  "chipped_area_um2", "diagonal_difference_pct", "file", "kind", "nominal_um", "in_tolerance", "fit_rms", "n_pixels")
+                  "chipped_area_um2", "diagonal_difference_pct",
+                  "file", "kind", "nominal_um", "in_tolerance", "fit_rms", "n_pixels")
 SIZE_COLUMNS = ("nominal_um", "n", "mean_diameter_um", "sd_diameter_um", "max_abs_error_um", "mean_hd", "sd_hd",
                 "mean_depth_nm")
 

@@ -11,8 +11,8 @@ import os
 
 import numpy as np
 
-from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.pipeline.flows.indents import DIAGONALS_DIFFER_PCT
+from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
 from markcal.stages.indent_om import RESOLUTION_RADII
 
 __all__ = ["indents_report_html"]

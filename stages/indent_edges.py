@@ -18,7 +18,7 @@ import numpy as np
 
 from .indent_geometry import inside_polygon
 
-__all__ = ["EdgesPastChips", "edges_past_chips", "shoelace"]
+__all__ = ["EdgesPastChips", "edge_frame", "edges_past_chips", "shoelace"]
 
 FIT_ITER = 8               # rounds of the edge fit, the outward tolerance shrinking each round
 START_TOL_HALF_D = 0.10    # first round: points within this of the chord (of d/2; bows reach 0.08)
@@ -47,7 +47,9 @@ class EdgesPastChips:
     chips_um: tuple = ()
 
 
-def _edge_frame(p0, p1, centre):
+def edge_frame(p0, p1, centre):
+    """Unit vector along the edge from corner ``p0`` to ``p1``, its outward normal (away from ``centre``) and
+    the chord's length."""
     chord = p1 - p0
     ln = float(np.hypot(*chord))
     e = chord / ln
@@ -119,7 +121,7 @@ def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: f
     chipped, outlines = [], []
     for j in range(k):
         p0, p1 = np.asarray(corners_um[j], float), np.asarray(corners_um[(j + 1) % k], float)
-        e, nrm, ln = _edge_frame(p0, p1, centre)
+        e, nrm, ln = edge_frame(p0, p1, centre)
         # the boundary's points between the two corners' directions (the sector of this edge)
         span = (cang[(j + 1) % k] - cang[j]) % (2 * np.pi)
         rel_ang = (ang - cang[j]) % (2 * np.pi)
@@ -140,10 +142,11 @@ def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: f
             run = _grow(run, sec, resid, tol)
             tt = np.clip(t[run], 0.0, 1.0)
             onto = p0 + np.outer(tt * ln, e) + np.outer(_curve(tt, coef), nrm)
-            between = np.vstack([c[run], onto[::-1]]) / pixel_um - np.asarray(origin_rc)[::-1]
+            outline = np.vstack([c[run], onto[::-1]])                       # the region between, µm
+            between = outline / pixel_um - np.asarray(origin_rc)[::-1]      # (col, row) of the window
             if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):
                 out[run] = onto
-                outlines.append(np.vstack([c[run], onto[::-1]]))
+                outlines.append(outline)
                 moved = True
         if moved:
             chipped.append(j)

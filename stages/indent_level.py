@@ -115,13 +115,17 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4) -> Levelled
 
 
 def _trimmed_surface(z, keep, degree, sigma, n_trim=3):
-    """The far-field surface of one round, refitted without the pixels ``TRIM_SPREADS`` robust spreads off it."""
-    import os
+    """The far-field surface of one round, refitted (up to ``n_trim`` times) without the pixels of ``keep`` more
+    than ``TRIM_SPREADS`` robust spreads (at least the pixel noise ``sigma``) off it.
+
+    The first round's far field holds the pile-up's tails under its 20 nm threshold: a quadratic through them
+    left the true far field of an imprint filling 84 % of the field 5-40 nm off, over 5 noise levels, so the
+    next round masked 95 % of the field and levelled from what was left (feedback seed 6 without debris:
+    d +52 %; +1.65 % with the refit). Stops when a refit would keep under half of ``keep``.
+    """
     use = keep
     for _ in range(n_trim + 1):
         surf = poly_surface(z, use, degree, step=1 if use.sum() < 3000 else 2)
-        if os.environ.get("NOTRIM"):
-            return surf
         res = (z - surf)[keep]
         med = np.median(res)
         spread = max(1.4826 * np.median(np.abs(res - med)), sigma)

@@ -22,7 +22,7 @@ from scipy import ndimage
 
 from .indent_corners import (VALLEY_END_SLOPES, bilinear, corner_on_ray, fill_cracks, region_pts, tongue_mask,
                              unless_crack)
-from .indent_edges import edges_past_chips, shoelace
+from .indent_edges import edge_frame, edges_past_chips, shoelace
 from .indent_geometry import circle_fit, diagonals, inside_polygon, robust_plane
 
 __all__ = ["Indenter", "INDENTERS", "hardness_hv", "SingleImprint", "measure_single", "facet_apex_nm",
@@ -362,13 +362,8 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     bows = np.full(nc, np.nan)
     for j in range(nc):
         p0, p1 = corners_um[j], corners_um[(j + 1) % nc]
-        chord = p1 - p0
-        ln = np.hypot(*chord)
-        e = chord / ln
-        nrm = np.array([e[1], -e[0]])
+        e, nrm, ln = edge_frame(p0, p1, np.array([cx, cy]))
         mid = (p0 + p1) / 2
-        if nrm @ (mid - [cx, cy]) < 0:
-            nrm = -nrm
         t = (cont_um - p0) @ e / ln
         off = (cont_um - mid) @ nrm
         sel = (np.abs(t - 0.5) < 0.05) & (np.abs(off) < 0.3 * ln)
