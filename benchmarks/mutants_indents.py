@@ -19,6 +19,8 @@ _WIDE = "tests/test_independent_renders.py::test_single_ruled_imprint_with_wide_
 
 _FB_CRACKS = "tests/test_independent_renders.py::test_feedback_render_cracks_do_not_carry_the_corners_out"
 _FB_CHIPS = "tests/test_independent_renders.py::test_feedback_render_chips_are_left_out_of_the_area"
+_FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_longer_carry_the_corners_out"
+_FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
 
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
@@ -415,19 +417,40 @@ MUTANTS_INDENTS = [
         "new": "np.asarray(low, float)",
         "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
     },
-    {   # the trace runs on into the crack (no stop where the valley's slope collapses; session 17)
-        "name": "corners-trace-no-slope-stop",
+    {   # the valley's end at any kink of its profile, not only where a steep rise flattens (session 20)
+        "name": "corners-kink-any-slope",
         "file": "stages/indent_corners.py",
-        "old": "        if slope < WALK_SLOPE_FRAC * slope0:\n",
-        "new": "        if False:\n",
-        "tests": [_WIDE, _FB_CRACKS],
+        "old": "        steep_then_flat = k[1] > VALLEY_END_SLOPES * slope_floor and k[2] < k[1] / 3.0\n",
+        "new": "        steep_then_flat = True\n",
+        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY],
     },
-    {   # any stretch beyond the traced corner taken for a crack's tongue (session 17)
-        "name": "corners-tongue-always",
+    {   # the valley's rise carried on to 0, not to the surface around the corner (session 20)
+        "name": "corners-kink-to-level-zero",
         "file": "stages/indent_corners.py",
-        "old": "    return bool(width < TONGUE_WIDTH_FRAC * min(s_out - s_in, TONGUE_REACH_FRAC * s_in))\n",
-        "new": "    return True\n",
-        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
+        "old": "    level = float(np.median(zz)) if len(zz) >= 20 else 0.0\n",
+        "new": "    level = 0.0\n",
+        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY, _FB_26],
+    },
+    {   # the kink itself taken, not carried on to the surface (a crack down the valley cut it short; session 20)
+        "name": "corners-kink-not-carried-on",
+        "file": "stages/indent_corners.py",
+        "old": "    return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True\n",
+        "new": "    return pts[j], True\n",
+        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY, _FB_26],
+    },
+    {   # the two lines' rise carried on, without the valley's own V (session 20)
+        "name": "corners-kink-without-v",
+        "file": "stages/indent_corners.py",
+        "old": "    return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True\n",
+        "new": "    return pts[j] + shift * e, True\n",
+        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY, _FB_26],
+    },
+    {   # the tongues beyond the valley's end left in the contact boundary (session 20)
+        "name": "corners-no-tongue",
+        "file": "stages/indent_corners.py",
+        "old": "        return kink, (hc, e, s_in)\n",
+        "new": "        return kink, None\n",
+        "tests": [_WIDE, _FB_26],
     },
     {   # the corners' V within 3 px of the diagonal only: a sunk-in corner's cusp read short (session 17)
         "name": "corners-v-narrow",
@@ -443,19 +466,19 @@ MUTANTS_INDENTS = [
         "new": "    for half in (V_WIDE_PX,):\n",
         "tests": [_WIDE],
     },
-    {   # a boundary corner beside the valley's traced end (on a chip) kept (session 17)
+    {   # a boundary corner beside the valley's end (on a chip) kept (session 17)
         "name": "corners-chip-corner-kept",
         "file": "stages/indent_corners.py",
-        "old": "    if converged and np.hypot(*(walked - corner)) > CRACK_TONGUE_PX:\n",
+        "old": "    if np.hypot(*(kink - corner)) > CRACK_TONGUE_PX:\n",
         "new": "    if False:\n",
         "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
     },
-    {   # the trace along rays from the apex, not anchored on the valley's bottom (session 17)
-        "name": "corners-trace-from-apex-rays",
+    {   # the valley's bottom searched 3 px either side of the track, not 1 (it may slide down a facet; session 20)
+        "name": "corners-track-wide-search",
         "file": "stages/indent_corners.py",
-        "old": "        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e)[0] - (back_px - 3.0) * e  # on the valley, behind\n",
-        "new": "        base = rc0 + (s - back_px) * e\n",
-        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range", _WIDE, _FB_CRACKS],
+        "old": "        p, _ = _lowest_across(zc, p + step_px * e, e, half_px=1.0)\n",
+        "new": "        p, _ = _lowest_across(zc, p + step_px * e, e, half_px=3.0)\n",
+        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY, _FB_26],
     },
     {   # Kaufman's Jacobian alone: the reweighted gradient off by what it leaves out (session 18)
         "name": "micrograph-gradient-left-out-dropped",

@@ -4,8 +4,8 @@ original surface, and radial cracks that would carry a corner out along them.
 - :func:`fill_cracks`: narrow grooves (cracks, scratches) lifted to their banks before the boundary is found;
 - :func:`corner_on_ray`: a coarse corner (the contact boundary's extreme point along a diagonal) refined to
   where a V fitted to the valley's own pixels crosses the surface level;
-- :func:`unless_crack`: the corner taken back to the valley's own end when the boundary ran out along a crack
-  wider than the fill (a narrow tongue), traced out along the valley from the half-depth region;
+- :func:`unless_crack`: the corner taken back to the valley's own end (the kink where its rise ends on the
+  valley's bottom profile) when the boundary ran out along a crack wider than the fill, or past a chip;
 - :func:`tongue_mask`: the pixels of those tongues, lifted out of the contact boundary.
 
 Frame: (row, col) pixel coordinates of the map window; heights levelled (original surface at 0), nm.
@@ -18,12 +18,9 @@ from scipy import ndimage
 __all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "tongue_mask", "unless_crack"]
 
 CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
-CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) along a narrow tongue: a crack ...
-TONGUE_WIDTH_FRAC = 1.0      # ... narrower a quarter of the way out than its length (a 90 deg corner: 1.5) ...
-TONGUE_REACH_FRAC = 0.3      # ... and than this fraction of the distance from the floor to where the tongue starts
+CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
 V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
-WALK_SLOPE_FRAC = 0.8        # a valley walk ends where the valley rises at under this fraction of its first slope
 
 
 def bilinear(img, r, c, order=1, prefilter=True):
@@ -31,7 +28,7 @@ def bilinear(img, r, c, order=1, prefilter=True):
                                    prefilter=prefilter)
 
 
-def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5):
+def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.5):
     """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
 
     The pixels of the last 9 px before the coarse corner (``length``), within ``V_WIDE_PX`` of the ray and
@@ -43,13 +40,15 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5):
     where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
     takes in less of the crack.
     Returns (crossing, the valley's slope in nm per px), or None when the pixels do not carry such a fit or
-    the crossing lies more than ``reach`` px from ``length``.
+    the crossing lies more than 2.5 px from ``length``.
     """
     ny, nx = zr.shape
     pad = np.ceil(V_WIDE_PX) + 1
     lo = np.floor(np.minimum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) - pad).astype(int)
     hi = np.ceil(np.maximum(rc0 + (length - 10) * e, rc0 + (length + 1) * e) + pad + 1).astype(int)
     lo, hi = np.maximum(lo, 0), np.minimum(hi, [ny, nx])
+    if np.any(hi <= lo):
+        return None                                        # the valley's end beyond the map
     rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
     rel = np.column_stack([rr.ravel() - rc0[0], cc.ravel() - rc0[1]])
     s_all = rel @ e
@@ -78,7 +77,7 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, reach=2.5):
             return None
     if not (k[1] > 0.2 * slope_floor and k[2] > 0):
         return None
-    at = length - k[0] / k[1]
+    at = length + (level - k[0]) / k[1]
     if not abs(at - length) <= reach:
         return None
     return at, float(k[1])
@@ -125,38 +124,66 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
     return corner, None
 
 
-def _walk_valley(zc, rc0, e, start, stop, slope_floor, noise, zr, max_step=10.0, n_steps=15, back_px=20.0):
-    """Corner on the valley from ``rc0`` along ``e``, found by tracing the valley out from ``start`` (px).
+def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, window_px=12.0):
+    """Corner on the valley from ``rc0`` along ``e``: the kink where its steep rise ends, found on the valley's
+    bottom profile traced out from ``start`` to ``stop`` (px).
 
-    Each step anchors the line along ``e`` on the valley's bottom (the lowest point across, 3 px behind the
-    current point), fits the valley's V (:func:`_valley_crossing`) to the last pixels before the point and
-    moves to where it crosses the surface level: by at most ``max_step`` px, never beyond ``stop`` along
-    ``e``. Anchored so, the line keeps to the valley even where the valley does not pass through ``rc0``
-    (rays from ``rc0`` would cross it at a slant). The walk ends where the V rises at under
-    ``WALK_SLOPE_FRAC`` of the slope of its first fit (a crack, which runs on at a nearly constant depth).
-    Returns (row, col) and whether the walk converged (ended on a V that crosses the level where it ends,
-    rather than at ``stop``, at a collapsed slope or where no V could be fitted).
+    The bottom is tracked outwards in ``step_px`` steps along ``e``, each the lowest point within 1 px across
+    ``e`` of the last one, so the track follows the valley, and a crack on from it, where they run off the
+    ray (a track free to turn ran off sideways down the facets). On the profile (height against distance
+    along ``e``) a continuous pair of lines is fitted to the ``window_px`` either side of each candidate
+    kink; the kink is the candidate with the smallest mean residual among those rising at least
+    ``VALLEY_END_SLOPES`` facet slopes before it and under a third of that after it (without that
+    condition a kink in the middle of the straight rise fits as well). A radial crack runs on from the
+    corner at a nearly constant depth below the surface, pile-up rises slowly, the original surface is
+    flat: each is the flatter line. A crack cuts the valley's last pixels down, so the kink lies short of
+    the corner (0-3 px on the feedback renderer, 4-5 px where a crack 4-7 px wide runs down the valley): the
+    corner is where the valley's V (:func:`_valley_crossing`, fitted to the 20 px before the kink) reaches
+    the surface level around it, the median of the heights beyond the kink (``window_px`` on, either
+    side; the levelled map's far field lies 10-60 nm off 0 at a corner where pile-up tails bend the far
+    field's fit, and extrapolated to 0 the corners went 2 px too far). Without a V fit, the two lines'
+    rise is carried on to that level. Returns (row, col) and whether a kink was found, or (the start,
+    False).
     """
     rc0 = np.asarray(rc0, float)
     e = _aim_at_valley(zc, rc0, e, start)
-    s, slope0 = float(start), None
-    for _ in range(n_steps):
-        base = _lowest_across(zc, rc0 + (s - 3.0) * e, e)[0] - (back_px - 3.0) * e  # on the valley, behind
-        fit = _valley_crossing(zr, base, e, back_px, slope_floor, noise, reach=np.inf)
-        if fit is None:
-            break
-        at, slope = fit
-        slope0 = slope if slope0 is None else slope0
-        if slope < WALK_SLOPE_FRAC * slope0:
-            break
-        step = float(np.clip(at - back_px, -max_step, max_step))
-        if abs(step) < 0.1:
-            return rc0 + s * e, True
-        if s >= stop:
-            break
-        rc0 = rc0 + (base + back_px * e - (rc0 + s * e))         # the line through the valley's bottom
-        s = min(s + step, stop)
-    return rc0 + s * e, False
+    p = rc0 + start * e
+    track = [p]
+    for _ in range(int(max(stop - start, 0.0) / step_px)):
+        p, _ = _lowest_across(zc, p + step_px * e, e, half_px=1.0)
+        track.append(p)
+    pts = np.array(track)
+    s = (pts - rc0) @ e
+    z = bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
+    if len(s) < 12:
+        return rc0 + start * e, False
+    best = None
+    for j in range(4, len(s) - 2):
+        sk = s[j]
+        use = np.abs(s - sk) <= window_px
+        d = s[use] - sk
+        a = np.column_stack([np.ones_like(d), np.minimum(d, 0.0), np.maximum(d, 0.0)])
+        k, *_ = np.linalg.lstsq(a, z[use], rcond=None)
+        msr = float(np.mean((a @ k - z[use]) ** 2))
+        steep_then_flat = k[1] > VALLEY_END_SLOPES * slope_floor and k[2] < k[1] / 3.0
+        if steep_then_flat and (best is None or msr < best[0]):
+            best = (msr, j, k)
+    if best is None:
+        return rc0 + start * e, False
+    _, j, k = best
+    # the rise carried on to the surface around the corner (the median beyond the kink, a crack's few
+    # pixels and the imprint's corner left out by the median)
+    lo = np.maximum(np.floor(pts[j] - 2 * window_px).astype(int), 0)
+    hi = np.minimum(np.ceil(pts[j] + 2 * window_px).astype(int) + 1, zr.shape)
+    rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
+    sa, ta = (rr - pts[j][0]) * e[0] + (cc - pts[j][1]) * e[1], (cc - pts[j][1]) * e[0] - (rr - pts[j][0]) * e[1]
+    zz = zr[rr, cc][(sa > 2.0) & (sa < window_px) & (np.abs(ta) < window_px)]
+    zz = zz[np.isfinite(zz)]
+    level = float(np.median(zz)) if len(zz) >= 20 else 0.0
+    shift = max((level - k[0]) / k[1], 0.0)
+    # where the valley's own V (fitted to its pixels, a crack down it left out) reaches that level
+    fit = _valley_crossing(zr, pts[j] - 20.0 * e, e, 20.0, slope_floor, noise, level, reach=shift + 3.0)
+    return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True
 
 
 def _lowest_across(zc, p, u, half_px=3.0):
@@ -187,19 +214,19 @@ def region_pts(zs, level, rc):
     return np.argwhere(lab == k).astype(float) if k else None
 
 
-def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_floor, noise):
+def unless_crack(zc, zr, half_pts, apex, phi, n_corners, corner, slope_floor, noise):
     """The corner ``corner`` (row, col), or the valley's own end when ``corner`` lies out along a crack or
-    beside the valley's end; and the crack's tongue (apex, e, distance of the walked corner), or None.
+    beside the valley's end; and the crack's tongue (apex, e, distance of the valley's end), or None.
 
     A crack wider than the fill (a scan's lag smears it) carries the boundary, and with it the corner, out
-    along a narrow tongue. The valley is traced out (:func:`_walk_valley`) along the diagonal ``phi`` from
-    ``apex`` (the centroid of the floor's pixels within noise of the lowest: the apex, also where the floor
-    is a clipped plateau whose lowest pixel lies anywhere), starting where the region half as deep as the
-    floor (``half_pts``; no crack goes that deep) ends. When ``corner`` lies more than ``CRACK_TONGUE_PX``
-    beyond the walk's end and the boundary's region between them is a tongue (:func:`_tongue`), the walk's
-    end is the corner. So it is when the walk converged on a V more than ``CRACK_TONGUE_PX`` beside or beyond
-    ``corner`` (a chip spalled beside the corner carried the boundary's far point sideways; debris or
-    pile-up cut it short). The walk may go 10 % beyond ``corner``.
+    along a narrow tongue. The valley's end is the kink where its rise ends (:func:`_valley_kink`), traced
+    along the diagonal ``phi`` from ``apex`` (the centroid of the floor's pixels within noise of the lowest:
+    the apex, also where the floor is a clipped plateau whose lowest pixel lies anywhere), starting where
+    the region half as deep as the floor (``half_pts``; no crack goes that deep) ends, and going up to 10 %
+    beyond ``corner``. When ``corner`` lies more than ``CRACK_TONGUE_PX`` from the valley's end, that end is
+    the corner: beyond it, a crack (its tongue, the quadrant beyond the end, returned to be lifted out of the
+    contact area), or beside it a chip spalled beside the corner that carried the boundary's far point
+    sideways, or debris and pile-up that cut it short.
     """
     hc = np.asarray(apex, float)
     rel = half_pts - hc
@@ -208,18 +235,20 @@ def unless_crack(zc, zr, inside, half_pts, apex, phi, n_corners, corner, slope_f
     if not sec.any():
         return corner, None
     s_out = float((corner - hc) @ e)
-    walked, converged = _walk_valley(zc, hc, e, float((rel[sec] @ e).max()), s_out + max(CRACK_TONGUE_PX, 0.1 * s_out),
-                                     slope_floor, noise, zr)
-    s_in = float((walked - hc) @ e)
+    kink, holds = _valley_kink(zc, zr, hc, e, float((rel[sec] @ e).max()), s_out + max(CRACK_TONGUE_PX, 0.1 * s_out),
+                               slope_floor, noise)
+    if not holds:
+        return corner, None
+    s_in = float((kink - hc) @ e)
     if s_out - s_in > CRACK_TONGUE_PX:
-        return (walked, (hc, e, s_in)) if _tongue(inside, hc, e, s_in, s_out) else (corner, None)
-    if converged and np.hypot(*(walked - corner)) > CRACK_TONGUE_PX:
-        return walked, None          # the boundary's corner beside (a chip) or short of the valley's own end
+        return kink, (hc, e, s_in)
+    if np.hypot(*(kink - corner)) > CRACK_TONGUE_PX:
+        return kink, None
     return corner, None
 
 
 def tongue_mask(shape, tongues, n_corners):
-    """Pixels beyond each crack's walked corner (tongues: apex, e, distance: :func:`unless_crack`), within
+    """Pixels beyond each crack's valley end (tongues: apex, e, distance: :func:`unless_crack`), within
     the quadrant about ``e``."""
     pts = np.indices(shape).reshape(2, -1).T.astype(float)
     mask = np.zeros(len(pts), bool)
@@ -227,25 +256,6 @@ def tongue_mask(shape, tongues, n_corners):
         rel = pts - hc
         mask |= (rel @ e > s_in + 0.5) & (_turn(rel, np.arctan2(e[0], e[1])) < np.pi / n_corners)
     return mask.reshape(shape)
-
-
-def _tongue(inside, rc0, e, s_in, s_out):
-    """Whether the region ``inside`` between ``s_in`` and ``s_out`` px from ``rc0`` along ``e`` is a narrow
-    tongue (a crack) rather than the corner itself.
-
-    A quarter of the way out it must be narrower across ``e`` than its length (a corner of 90 deg is 1.5
-    times as wide there, one with sunk-in edges 1.2-1.4 times) and than ``TONGUE_REACH_FRAC`` of ``s_in``
-    (a crack is narrow beside the imprint; a corner whose valley walk stopped short is not). Also when the
-    region does not reach that far along ``e`` at all (the corner was carried out off the diagonal).
-    """
-    pts = np.argwhere(inside) - rc0
-    s = pts @ e
-    t = pts @ np.array([-e[1], e[0]])
-    sel = (np.abs(s - (s_in + 0.25 * (s_out - s_in))) <= 1.0) & (np.abs(t) <= s_out - s_in)
-    if not sel.any():
-        return True                      # the region ends short of it: carried out off the diagonal (a chip)
-    width = t[sel].max() - t[sel].min() + 1.0
-    return bool(width < TONGUE_WIDTH_FRAC * min(s_out - s_in, TONGUE_REACH_FRAC * s_in))
 
 
 def _aim_at_valley(zc, rc0, e, length):

@@ -336,7 +336,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         if not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:
             trace = trace or _trace_from(zs, pit, depth, noise)
             if trace[0] is not None and trace[1] is not None:
-                on_ray, tongue = unless_crack(zc, zr, inside, trace[0], trace[1], phi, nc, on_ray, slope_px, noise)
+                on_ray, tongue = unless_crack(zc, zr, trace[0], trace[1], phi, nc, on_ray, slope_px, noise)
                 tongues += [tongue] if tongue else []
         corners.append(on_ray + [r0, c0])
     if tongues:
