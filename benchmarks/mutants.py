@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures as cf
+import hashlib
 import importlib.abc
 import importlib.util
 import json
@@ -377,6 +378,11 @@ EQUIVALENT = {
     "h-detect-reach": "not equivalent in the strict sense, but without measurable effect: the ring fit's window "
                       "reaching 0.1 instead of 0.5 mm past the outer ring gives centre RMS 3.52 / 4.13 µm against "
                       "3.60 / 3.75 µm (seeds 101, 102), inside the seed-to-seed scatter",
+    "corners-trace-from-lowest-pixel": "not equivalent in the strict sense, but without measurable effect since "
+                                       "session 20: the valley's bottom is tracked from an aimed start with a "
+                                       "search across, so where the trace starts matters little: feedback seeds "
+                                       "1-60 d within 0.1 points (max |d| 2.00 % either way), ruled wide-crack "
+                                       "seeds 1-12 within 0.01 points, the clipped-floor test passes",
 }
 
 
@@ -413,6 +419,8 @@ def mutated_source(m: Mutant) -> str:
 
 def run_mutant(m: Mutant, python: str, workdir: str, timeout_s: float) -> tuple:
     safe = re.sub(r"[^\w.-]+", "_", m.id)          # the null mutants' ids hold their test lists ('/', quotes)
+    if len(safe) > 120:                             # ... which can pass the file system's 255-byte names
+        safe = safe[:80] + "-" + hashlib.sha1(safe.encode()).hexdigest()[:16]
     spec = os.path.join(workdir, safe + ".json")
     with open(spec, "w", encoding="utf-8") as fh:
         json.dump({"module": module_name(m.file), "path": str(REPO / m.file), "source": mutated_source(m)}, fh)

@@ -68,9 +68,9 @@ MUTANTS_INDENTS = [
     },
     {   # edge bow measured with the normal pointing inwards (sink-in reported as pile-up)
         "name": "single-bow-sign",
-        "file": "stages/indent_single.py",
-        "old": "        if nrm @ (mid - [cx, cy]) < 0:\n            nrm = -nrm\n",
-        "new": "        if nrm @ (mid - [cx, cy]) > 0:\n            nrm = -nrm\n",
+        "file": "stages/indent_edges.py",
+        "old": "    if nrm @ ((p0 + p1) / 2 - centre) < 0:\n",
+        "new": "    if nrm @ ((p0 + p1) / 2 - centre) > 0:\n",
         "tests": [_SINGLE + "::test_edge_bow_signs_against_truth"],
     },
     {   # a corner outside the field not flagged
@@ -363,7 +363,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "    theta = _diagonal_angle(zs, pit, depth, nc)\n",
         "new": "    theta = None\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner", _FB_CRACKS],
     },
     {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
         "name": "select-pits-not-pyramids",
@@ -379,7 +379,8 @@ MUTANTS_INDENTS = [
         "old": "        sec = np.abs(dphi) < np.pi / (3 * nc)\n",
         "new": "        sec = np.abs(dphi) < np.pi / nc\n",
         "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner",
-                  "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
+                  "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
+                  _FB_CRACKS],
     },
     {   # squares under the minimum diagonal scored again: a dust blob wins on the real SEM image (session 13)
         "name": "squares-under-minimum-size",
@@ -472,13 +473,6 @@ MUTANTS_INDENTS = [
         "old": "    if np.hypot(*(kink - corner)) > CRACK_TONGUE_PX:\n",
         "new": "    if False:\n",
         "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
-    },
-    {   # the valley's bottom searched 3 px either side of the track, not 1 (it may slide down a facet; session 20)
-        "name": "corners-track-wide-search",
-        "file": "stages/indent_corners.py",
-        "old": "        p, _ = _lowest_across(zc, p + step_px * e, e, half_px=1.0)\n",
-        "new": "        p, _ = _lowest_across(zc, p + step_px * e, e, half_px=3.0)\n",
-        "tests": [_WIDE, _FB_CRACKS, _FB_EVERY, _FB_26],
     },
     {   # Kaufman's Jacobian alone: the reweighted gradient off by what it leaves out (session 18)
         "name": "micrograph-gradient-left-out-dropped",

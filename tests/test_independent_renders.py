@@ -239,13 +239,14 @@ def test_single_ruled_imprint_with_strongly_sunk_in_edges(tmp_path):
     _assert_single_goals(run_indents([gsf], None, IndentsOptions()).indents, r)
 
 
-@pytest.mark.parametrize("seed", [4, 8])
+@pytest.mark.parametrize("seed", [4, 8, 9])
 def test_single_ruled_imprint_with_wide_radial_cracks(tmp_path, seed):
     """Cracks of 4-7 px FWHM and 100 nm (a scan's lag widens a crack's trace beyond the fill's 5 px disc) from
     all four corners, several running to the border: before session 17 the corners ran out along them to
     the border (d +17 % and +23 %) and the imprint was flagged cut, without an area. The valley is now traced
-    out from the half-depth region and the cracks' tongues lifted out of the boundary. Tolerances: the
-    single-imprint goals (d, depth, area, corners), and the imprint not flagged cut by the border."""
+    out from the half-depth region and the cracks' tongues lifted out of the boundary. Seed 9: the valley's V
+    fitted again within 3 px where a crack runs down it (fitted over 5 px only, d -0.08 -> -0.77 %). Tolerances:
+    the single-imprint goals (d, depth, area, corners), and the imprint not flagged cut by the border."""
     r = render_single_ruled(seed, size_px=256)
     t, px = r.truth, r.pixel_um
     corners = np.array([[c["x_um"], c["y_um"]] for c in t["corners"]])
@@ -361,17 +362,19 @@ def test_feedback_render_chips_beside_corners_do_not_take_them(tmp_path, seed, d
     assert corner_tol_px is None or corner <= corner_tol_px, corner
 
 
-@pytest.mark.parametrize("seed,d_tol_pct", [(7, None), (16, None), (15, None), (11, 3.0), (10, 3.0)])
-def test_feedback_render_cracks_do_not_carry_the_corners_out(tmp_path, seed, d_tol_pct):
+@pytest.mark.parametrize("seed,d_tol_pct,area_tol_pct", [(7, None, None), (16, None, None), (15, None, None),
+                                                    (11, 3.0, None), (10, None, 1.0)])
+def test_feedback_render_cracks_do_not_carry_the_corners_out(tmp_path, seed, d_tol_pct, area_tol_pct):
     """Every artefact drawn. Seeds 7 and 16: a corner ran out along a crack or a chip beside it (d +2.4 and
     +1.2 %); seed 15: two corners sat on chips beside them, 14 and 21 px off the valleys' ends (d +2.1 %).
     Now within the rendered-imprint goal (0.5 % or 1 px). Seed 11 (89 % fill, cracks smeared wide by
     the z loop's lag, two running to the border): d +19 % before session 17; held to the real-map goal
-    (3 %), its surroundings being mis-levelled by tens of nm. Seed 10 (+0.9 %): a corner whose valley
-    trace stops short on its convex facets is no crack (the region there is as wide as a corner's); taken
-    for one, d -11 %."""
-    d, _depth, _area, _corner, t = _feedback_errors(tmp_path, seed)
+    (3 %), its surroundings being mis-levelled by tens of nm. Seed 10: a corner beside a chip, 3 px short
+    of the valley's end (session 19: d +1.09 %, area +2.9 %); the valley's end taken (session 20): d
+    +0.27 %, area +0.26 %, held to the rendered goals for d and area (1 %)."""
+    d, _depth, area, _corner, t = _feedback_errors(tmp_path, seed)
     assert abs(d) <= (d_tol_pct or max(0.5, 100 * t["pixel_um"] / t["d_um"])), d
+    assert area_tol_pct is None or abs(area) <= area_tol_pct, area
 
 
 def test_feedback_render_far_field_in_slivers_everything_drawn(tmp_path):
