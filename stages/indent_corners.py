@@ -29,18 +29,18 @@ def bilinear(img, r, c, order=1, prefilter=True):
 
 
 def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.5):
-    """Distance from ``rc0`` along ``e`` where the valley between two facets meets the surface level.
+    """Distance from ``rc0`` along ``e`` where the valley between two facets meets ``level`` (nm; the surface).
 
     The pixels of the last 9 px before the coarse corner (``length``), within ``V_WIDE_PX`` of the ray and
     below the surface, get a V across the valley on a line along it: z = a + b s + c |t - t0| + f t (s along,
-    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses 0 at the
+    t across the ray, t0 the valley's offset, searched). The V's bottom line a + b s crosses ``level`` at the
     corner. Fitted to the pixels themselves: an interpolated profile along the valley rounds its kink and
     reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg. Within 3 px only, the V of a
     corner whose edges sink in (a cusp) comes out too shallow (corners 0.3-1 px short at bows of -7 %); but
     where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
     takes in less of the crack.
     Returns (crossing, the valley's slope in nm per px), or None when the pixels do not carry such a fit or
-    the crossing lies more than 2.5 px from ``length``.
+    the crossing lies more than ``reach`` px from ``length``.
     """
     ny, nx = zr.shape
     pad = np.ceil(V_WIDE_PX) + 1
