@@ -21,6 +21,8 @@ _FB_CRACKS = "tests/test_independent_renders.py::test_feedback_render_cracks_do_
 _FB_CHIPS = "tests/test_independent_renders.py::test_feedback_render_chips_are_left_out_of_the_area"
 _FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_longer_carry_the_corners_out"
 _FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
+_CORNER_LEVEL = "tests/test_indent_corner_level.py"
+_FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
 
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
@@ -181,8 +183,8 @@ MUTANTS_INDENTS = [
     {   # the first round's surface fitted through the line offsets of a row-flattened scan (session 14)
         "name": "level-first-surface-through-offsets",
         "file": "stages/indent_level.py",
-        "old": "        surf = _trimmed_surface(z - off0[:, None] if it == 0 else z, keep, _bow_degree(keep), sigma)\n",
-        "new": "        surf = _trimmed_surface(z, keep, _bow_degree(keep), sigma)\n",
+        "old": "        surf = _trimmed_surface(z - off0[:, None] if it == 0 else z, keep, degree, sigma)\n",
+        "new": "        surf = _trimmed_surface(z, keep, degree, sigma)\n",
         "tests": ["tests/test_independent_renders.py::test_flattened_scan_cropped_afterwards"],
     },
     {   # a clipped floor taken for a flat-bottomed pit (a grating's): the imprint refused (session 15)
@@ -271,7 +273,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "        for c in find_contours(ring, level):\n",
         "new": "        for c in []:\n",
-        "tests": ["tests/test_independent_renders.py::test_boundary_cut_into_pieces_by_the_border_is_measured_and_flagged"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn"],
     },
     {   # lines with little far field not counted: a flatten undone on guesswork said nothing (session 16)
         "name": "unflatten-short-lines-uncounted",
@@ -348,7 +350,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "            keep = valid & ring if it == 0 else prev\n",
         "new": "            keep = valid & ring\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_noise_free_and_far_field_in_corners"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_noise_free_and_far_field_in_corners",
+                  _CORNER_LEVEL],
     },
     {   # a quadratic whatever the far field's spread (session 13)
         "name": "level-always-quadratic",
@@ -356,7 +359,8 @@ MUTANTS_INDENTS = [
         "old": "    if cells.sum() >= 10:\n",
         "new": "    if True:\n",
         "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers",
-                  "tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn"],
+                  "tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
+                  _FB_19],
     },
     {   # the diagonals' direction from the boundary's far points again (session 13)
         "name": "single-diagonals-from-outline",
@@ -549,6 +553,41 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "def _trimmed_surface(z, keep, degree, sigma, n_trim=3):\n",
         "new": "def _trimmed_surface(z, keep, degree, sigma, n_trim=0):\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails", _FB_19],
+    },
+    {   # never levelled to the surface beyond the corners (session 21)
+        "name": "level-corners-never",
+        "file": "stages/indent_level.py",
+        "old": "        return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
+        "new": "        return False\n",
+        "tests": [_CORNER_LEVEL],
+    },
+    {   # levelled to the strips above the far field too (session 21)
+        "name": "level-corners-any-sign",
+        "file": "stages/indent_level.py",
+        "old": "        return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
+        "new": "        return bool(abs(self.offset_nm) > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
+        "tests": [_CORNER_LEVEL],
+    },
+    {   # the strips' level with the radial cracks in them (session 21)
+        "name": "level-corner-strips-with-cracks",
+        "file": "stages/indent_level.py",
+        "old": "            band &= ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf <= max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)\n",
+        "new": "",
+        "tests": [_CORNER_LEVEL],
+    },
+    {   # levelled to the strips with the ring's bow, fitted through the pile-up's tails (session 21)
+        "name": "level-corners-ring-bow-kept",
+        "file": "stages/indent_level.py",
+        "old": "    ring_bow = _ring_bow(z, ring) if fit_bow else np.zeros_like(z)\n",
+        "new": "    ring_bow = _ring_bow(z, ring)\n",
+        "tests": [_CORNER_LEVEL],
+    },
+    {   # levelled to the strips with each round's quadratic through the tails (session 21)
+        "name": "level-corners-quadratic-kept",
+        "file": "stages/indent_level.py",
+        "old": "        degree = _bow_degree(keep) if fit_bow else min(_bow_degree(keep), 1)\n",
+        "new": "        degree = _bow_degree(keep)\n",
+        "tests": [_CORNER_LEVEL],
     },
 ]

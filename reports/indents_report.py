@@ -216,6 +216,10 @@ def indents_report_html(res) -> str:
             ("flattened line by line before export (each line's fit taken again from its far field)",
              esc(s["line_flatten"]) if s.get("line_flatten", "none") != "none" else ""),
             ("non-square pixels resampled", esc(s["resampled"]) if s.get("resampled", "none") != "none" else ""),
+            ("levelled to the surface beyond the corners (pile-up's tails under the far field)",
+             (f'{s["n_files_levelled_to_corners"]} file(s)' + (f', the far field {num(-s["corner_level_nm"], "nm")} '
+                                                               "above it" if s.get("corner_level_nm") is not None else ""))
+             if s.get("n_files_levelled_to_corners") else ""),
             ("floor clipped (the scanner's Z range): depths are lower bounds",
              f'{s["n_files_floor_clipped"]} file(s)' if s.get("n_files_floor_clipped") else ""),
             ("runtime", num(s["runtime_s"], "s"))]

@@ -157,33 +157,55 @@ def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, w
     z = bilinear(zc, pts[:, 0], pts[:, 1], order=3, prefilter=False)
     if len(s) < 12:
         return rc0 + start * e, False
-    best = None
-    for j in range(4, len(s) - 2):
-        sk = s[j]
-        use = np.abs(s - sk) <= window_px
-        d = s[use] - sk
-        a = np.column_stack([np.ones_like(d), np.minimum(d, 0.0), np.maximum(d, 0.0)])
-        k, *_ = np.linalg.lstsq(a, z[use], rcond=None)
-        msr = float(np.mean((a @ k - z[use]) ** 2))
-        steep_then_flat = k[1] > VALLEY_END_SLOPES * slope_floor and k[2] < k[1] / 3.0
-        if steep_then_flat and (best is None or msr < best[0]):
-            best = (msr, j, k)
-    if best is None:
+    fit = _kink_fits(s, z, window_px)
+    if fit is None:
         return rc0 + start * e, False
-    _, j, k = best
+    cand, ks, msr = fit
+    steep_then_flat = (ks[:, 1] > VALLEY_END_SLOPES * slope_floor) & (ks[:, 2] < ks[:, 1] / 3.0)
+    if not steep_then_flat.any():
+        return rc0 + start * e, False
+    b = int(np.flatnonzero(steep_then_flat)[np.argmin(msr[steep_then_flat])])
+    j, k = int(cand[b]), ks[b]
     # the rise carried on to the surface around the corner (the median beyond the kink, a crack's few
     # pixels and the imprint's corner left out by the median)
     lo = np.maximum(np.floor(pts[j] - 2 * window_px).astype(int), 0)
     hi = np.minimum(np.ceil(pts[j] + 2 * window_px).astype(int) + 1, zr.shape)
-    rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
-    sa, ta = (rr - pts[j][0]) * e[0] + (cc - pts[j][1]) * e[1], (cc - pts[j][1]) * e[0] - (rr - pts[j][0]) * e[1]
-    zz = zr[rr, cc][(sa > 2.0) & (sa < window_px) & (np.abs(ta) < window_px)]
-    zz = zz[np.isfinite(zz)]
+    zz = np.empty(0)
+    if np.all(hi > lo):                                  # a kink beyond the map's border has no window
+        rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
+        sa = (rr - pts[j][0]) * e[0] + (cc - pts[j][1]) * e[1]
+        ta = (cc - pts[j][1]) * e[0] - (rr - pts[j][0]) * e[1]
+        zz = zr[rr, cc][(sa > 2.0) & (sa < window_px) & (np.abs(ta) < window_px)]
+        zz = zz[np.isfinite(zz)]
     level = float(np.median(zz)) if len(zz) >= 20 else 0.0
     shift = max((level - k[0]) / k[1], 0.0)
     # where the valley's own V (fitted to its pixels, a crack down it left out) reaches that level
     fit = _valley_crossing(zr, pts[j] - 20.0 * e, e, 20.0, slope_floor, noise, level, reach=shift + 3.0)
     return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True
+
+
+def _kink_fits(s, z, window_px):
+    """A continuous pair of lines, z = k0 + k1 min(d, 0) + k2 max(d, 0) with d = s - s_j, fitted by least
+    squares to the profile within ``window_px`` of each candidate kink s_j (j from 4 to len - 3), all at once.
+
+    Returns
+    -------
+    tuple or None
+        Candidate indices (m,), coefficients (m, 3) and mean squared residuals (m,); None where a window's
+        normal equations are singular.
+    """
+    cand = np.arange(4, len(s) - 2)
+    d = s[None, :] - s[cand][:, None]                           # (m, n): every point against every kink
+    w = (np.abs(d) <= window_px).astype(float)
+    x = np.stack([w, w * np.minimum(d, 0.0), w * np.maximum(d, 0.0)], axis=-1)
+    ata = np.einsum("mni,mnk->mik", x, x)
+    atz = np.einsum("mni,n->mi", x, z)
+    try:
+        ks = np.linalg.solve(ata, atz[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return None
+    res = (np.einsum("mni,mi->mn", x, ks) - w * z[None, :]) ** 2
+    return cand, ks, res.sum(axis=1) / w.sum(axis=1)
 
 
 def _lowest_across(zc, p, u, half_px=3.0):

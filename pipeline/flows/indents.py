@@ -21,7 +21,7 @@ from markcal.stages import indent_select as sel
 from markcal.stages.afm_files import sniff_format
 from markcal.stages.indent_array import ArraySpec
 from markcal.stages.indent_micrograph import measure_micrograph
-from markcal.stages.indent_level import level_single
+from markcal.stages.indent_level import corner_level, level_single
 from markcal.stages.indent_single import INDENTERS, facet_apex_nm, hardness_hv, measure_single
 from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.errors import MarkcalError
@@ -213,6 +213,30 @@ def _afm_imprints(lv, px) -> list:
     return [_afm_imprint(lv, px, r, c, rad) for r, c, rad in ind.detect_pits(lv.z_nm, lv.noise_nm, px)]
 
 
+def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
+    """Where the surface beyond the imprints' corners lies clearly below the far field's level (pile-up's tails
+    under the far field, :func:`markcal.stages.indent_level.corner_level`): the map levelled again with planes
+    only, its zero put on that surface, and its imprints measured again. Returns the levelled map and the
+    imprints."""
+    found = sel.accept_imprints(imps, px, floor)
+    if not found:
+        return lv, imps
+    corners, centres = [m.corners_um / px for m in found], [(m.x_um / px, m.y_um / px) for m in found]
+    diagonals = [m.d_um / px for m in found]
+    lev = corner_level(lv.z_nm, corners, centres, diagonals, lv.noise_nm)
+    info["corner_level_nm"] = lev.offset_nm
+    info["levelled_to_corners"] = lev.below_far_field(lv.noise_nm)
+    if not info["levelled_to_corners"]:
+        return lv, imps
+    say(f"{name}: the surface beyond the corners lies {lev.offset_nm:+.1f} nm under the far field's level "
+        "(pile-up's tails): levelled to it")
+    # planes only (a bow through the tails bends under the imprint), then the strips' level taken as zero
+    lv = level_single(heights, px, fit_bow=False)
+    lev = corner_level(lv.z_nm, corners, centres, diagonals, lv.noise_nm)
+    lv = dataclasses.replace(lv, z_nm=lv.z_nm - lev.offset_nm)
+    return lv, _afm_imprints(lv, px)
+
+
 def _refuse_inverted(lv, px):
     """Raise when a levelled map's heights look inverted: more stands up than lies down, and most of what stands
     up is imprints turned over (pile-up lobes turned over are pits, which had been reported as imprints). The
@@ -320,13 +344,16 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
                 "Z range), depths are lower bounds")
         info["floor_clipped_px"] = n_clip
         lv = level_afm(heights, px)
-        if lv.mask.mean() > 0.3:
+        filled = lv.mask.mean() > 0.3
+        if filled:
             # an imprint filling much of the field: level from the far field only
             lv = level_single(heights, px)
         _refuse_inverted(lv, px)
         say(f"{name}: detecting and fitting imprints")
         imps = _afm_imprints(lv, px)
         floor = max(5.0, 8 * lv.noise_nm)
+        if spec is None and filled:
+            lv, imps = _level_at_corners(heights, lv, px, imps, floor, say, name, info)
         image = lv.z_nm
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
     elif spec is None and (single := _micrograph_single(img, say, info)):
@@ -439,6 +466,8 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "resampled": files[0].info.get("resampled", "none"),
         "n_files_floor_clipped": int(sum(bool(f.info.get("floor_clipped_px")) for f in files)),
         "n_files_flatten_uncertain": int(sum(bool(f.info.get("line_flatten_uncertain")) for f in files)),
+        "n_files_levelled_to_corners": int(sum(bool(f.info.get("levelled_to_corners")) for f in files)),
+        "corner_level_nm": files[0].info.get("corner_level_nm") if files[0].info.get("levelled_to_corners") else None,
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
