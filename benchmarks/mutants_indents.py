@@ -590,4 +590,11 @@ MUTANTS_INDENTS = [
         "new": "        degree = _bow_degree(keep)\n",
         "tests": [_CORNER_LEVEL],
     },
+    {   # an imprint open only through a chip that ran to the border flagged cut, without an area (session 21)
+        "name": "single-cut-through-chip",
+        "file": "stages/indent_single.py",
+        "old": "        cut = False\n",
+        "new": "        pass\n",
+        "tests": ["tests/test_independent_renders.py::test_chip_running_to_the_border_does_not_cut_the_imprint"],
+    },
 ]

@@ -176,6 +176,12 @@ def _boundary(zb, level, inside_rc):
     return best + np.column_stack([g_r * step, g_c * step]), cut
 
 
+def _inside_field(xy_px, shape, margin_px) -> bool:
+    """Whether every point (x = column, y = row; pixels) lies at least ``margin_px`` inside the map."""
+    ny, nx = shape
+    return bool(np.all((xy_px >= margin_px) & (xy_px <= np.array([nx - 1, ny - 1]) - margin_px)))
+
+
 def _trace_from(zs, pit, depth_nm, noise):
     """Where a valley trace starts (:func:`unless_crack`): the pixels of the region half as deep as the floor,
     and the apex, the centroid of the floor's pixels within noise of the lowest (also where the floor is a
@@ -205,6 +211,7 @@ def _diagonal_angle(zs, pit, depth_nm, n_corners):
 
 #: longest run of missing pixels along a column (scan lines left out) filled before the measurement
 MAX_FILLED_GAP = 2
+CHIP_CUT_MARGIN_PX = 1.0   # a boundary drawn past its chips this far inside the map everywhere is not cut
 
 
 def _fill_line_gaps(z, max_gap=MAX_FILLED_GAP):
@@ -357,6 +364,9 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # chips spalled beside the edges (glass): the edges drawn past them, as an operator does
     chips = edges_past_chips(cont_rc[:, ::-1] * pixel_um, corners_um, pixel_um, d_um, zs, (r0, c0), slope_px)
     cont_um = chips.contour_um
+    if cut and not outside and chips.chips_um and _inside_field(cont_um / pixel_um, zr.shape, CHIP_CUT_MARGIN_PX):
+        # open only through a chip that ran to the border: drawn past it, the boundary stays inside the map
+        cut = False
     area = float("nan") if cut else shoelace(cont_um)
     # edge bow: mid-edge displacement from each corner-to-corner chord, outward positive
     bows = np.full(nc, np.nan)
