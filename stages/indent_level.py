@@ -231,17 +231,11 @@ class CornerLevel:
     ----------
     levels_nm : ndarray (m,)
         Each strip's level (nm, in the map's current frame).
-    xy_px : ndarray (m, 2)
-        The strips' centroids (column, row).
-    n_px : ndarray (m,)
-        Pixels per strip.
     strips : ndarray of bool (rows, cols)
         The strips' pixels (those that count).
     """
 
     levels_nm: np.ndarray
-    xy_px: np.ndarray
-    n_px: np.ndarray
     strips: np.ndarray
 
     @property
@@ -296,7 +290,7 @@ def corner_level(z_nm: np.ndarray, corners_px, centres_px, diagonals_px, sigma_n
         The map's noise (nm).
     """
     ny, nx = z_nm.shape
-    levels, xy, npx = [], [], []
+    levels = []
     strips = np.zeros(z_nm.shape, bool)
     for corners, centre, d in zip(corners_px, centres_px, diagonals_px):
         centre = np.asarray(centre, float)
@@ -308,8 +302,8 @@ def corner_level(z_nm: np.ndarray, corners_px, centres_px, diagonals_px, sigma_n
             e /= r
             reach = CORNER_BAND_FROM_PX + max(CORNER_BAND_TO_D * d, 4.0)
             lo, hi = q - reach - CORNER_BAND_HALF_PX, q + reach + CORNER_BAND_HALF_PX
-            c0, r0 = max(int(np.floor(min(lo[0], hi[0]))), 0), max(int(np.floor(min(lo[1], hi[1]))), 0)
-            c1, r1 = min(int(np.ceil(max(lo[0], hi[0]))) + 1, nx), min(int(np.ceil(max(lo[1], hi[1]))) + 1, ny)
+            c0, r0 = max(int(np.floor(lo[0])), 0), max(int(np.floor(lo[1])), 0)
+            c1, r1 = min(int(np.ceil(hi[0])) + 1, nx), min(int(np.ceil(hi[1])) + 1, ny)
             if c1 <= c0 or r1 <= r0:
                 continue
             rr, cc = np.mgrid[r0:r1, c0:c1]
@@ -324,8 +318,5 @@ def corner_level(z_nm: np.ndarray, corners_px, centres_px, diagonals_px, sigma_n
             if band.sum() < CORNER_BAND_MIN_PX:
                 continue
             levels.append(_strip_level(zz[band], sigma_nm))
-            xy.append((cc[band].mean(), rr[band].mean()))
-            npx.append(int(band.sum()))
             strips[r0:r1, c0:c1] |= band
-    return CornerLevel(levels_nm=np.asarray(levels, float), xy_px=np.asarray(xy, float).reshape(-1, 2),
-                       n_px=np.asarray(npx, int), strips=strips)
+    return CornerLevel(levels_nm=np.asarray(levels, float), strips=strips)
