@@ -72,10 +72,12 @@ def main(argv=None):
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--ablate", choices=FAMILIES + ("all",), default=None,
                     help="switch one artefact family off ('all': every family off, the tip stays)")
+    ap.add_argument("--format", choices=("gsf", "ibw"), default="gsf",
+                    help="gsf: the trace only; ibw: HeightTrace and HeightRetrace (the z loop's lag taken out)")
     a = ap.parse_args(argv)
     seeds = parse_seeds(a.seeds)
     switches = {f: False for f in (FAMILIES if a.ablate == "all" else [a.ablate] if a.ablate else [])}
-    print(f"indent_afm_feedback, seeds {a.seeds}, {a.size} x {a.size}, ablated: {a.ablate or 'none'}")
+    print(f"indent_afm_feedback, seeds {a.seeds}, {a.size} x {a.size}, ablated: {a.ablate or 'none'}, {a.format}")
     print(f"goals: d {D_GOAL_PCT} % or {D_GOAL_PX:g} px (larger), depth {DEPTH_GOAL_PCT:g} %, "
           f"area {AREA_GOAL_PCT:g} %, corners {CORNER_GOAL_PX} px")
     print("seed pix_nm   d_um fill recov  d_err%   d_px  depth%   area%  corner_px  n  render_s  run_s  fails")
@@ -86,7 +88,7 @@ def main(argv=None):
             r = render_feedback(s, a.size, **switches)
             t_render = time.perf_counter() - t0
             tr = r.truth
-            gsf, _ = write_feedback(r, tmp, f"fb_seed{s:03d}")
+            gsf, _ = write_feedback(r, tmp, f"fb_seed{s:03d}", a.format)
             head = (f"{s:4d} {tr['pixel_nm']:6.1f} {tr['d_um']:6.2f} {tr['fill']:4.2f} "
                     f"{tr['recovery_frac']:5.3f}")
             t1 = time.perf_counter()

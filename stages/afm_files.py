@@ -36,8 +36,8 @@ import numpy as np
 
 from .errors import MarkcalError
 
-__all__ = ["sniff_format", "is_jpk", "read_spm_file", "pick_channel", "Channel", "length_um", "height_nm_per_unit",
-           "LEN_UM", "Z_NM"]
+__all__ = ["sniff_format", "is_jpk", "read_spm_file", "pick_channel", "other_direction", "Channel", "length_um",
+           "height_nm_per_unit", "LEN_UM", "Z_NM", "OTHER_DIRECTION"]
 
 #: length unit name -> µm (None: no physical unit)
 LEN_UM = {"m": 1e6, "mm": 1e3, "cm": 1e4, "um": 1.0, "µm": 1.0, "μm": 1.0, "~m": 1.0, "micron": 1.0,
@@ -150,6 +150,18 @@ def _to_nm(values, unit, label):
     return np.asarray(values, np.float64) * scale
 
 
+#: ``meta`` key under which a reader hands :func:`.image_io.read_image` the picked channel scanned the other way
+OTHER_DIRECTION = "_other_direction"
+
+
+def other_direction(channels: list[Channel], picked: Channel) -> Channel | None:
+    """The channel of ``picked``'s name scanned the other way (its retrace for a trace, and back), or None."""
+    want = {"trace": "retrace", "retrace": "trace"}.get(picked.direction)
+    if want is None:
+        return None
+    return next((c for c in channels if c.direction == want and _norm(c.name) == _norm(picked.name)), None)
+
+
 def read_spm_file(path, fmt: str, channel: str | None = None):
     """Read one channel of a vendor SPM file.
 
@@ -179,6 +191,10 @@ def read_spm_file(path, fmt: str, channel: str | None = None):
     data = _to_nm(values, unit, ch.label)
     meta = {"format": fmt, "channel": ch.label, "channels": [c.label for c in channels],
             "z_unit_in_file": unit, "pixel_source": _FORMATS[fmt] if px_um else None, **extra}
+    if (other := other_direction(channels, ch)) is not None:
+        o_values, o_unit = other.load()
+        if np.shape(o_values) == np.shape(data):
+            meta[OTHER_DIRECTION] = _to_nm(o_values, o_unit, other.label)
     return data, px_um, meta
 
 

@@ -36,8 +36,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .afm_files import Channel, height_nm_per_unit, is_jpk, length_um, pick_channel, pixel_um_xy, \
-    read_spm_file, sniff_format
+from .afm_files import OTHER_DIRECTION, Channel, height_nm_per_unit, is_jpk, length_um, other_direction, \
+    pick_channel, pixel_um_xy, read_spm_file, sniff_format
 from .errors import MarkcalError
 from .io import existing_file
 from .text_maps import is_text_matrix, parse_text_matrix
@@ -66,6 +66,9 @@ class Image:
         The file path.
     meta : dict
         What the reader found (format, channel, units, notes).
+    other_direction : ndarray (rows, cols) or None
+        AFM: the same channel scanned the other way (the retrace of a trace, and back), in nm and the same
+        orientation, where the file holds it (IBW, Bruker, NID, JPK); None otherwise.
     """
 
     data: np.ndarray
@@ -73,6 +76,7 @@ class Image:
     kind: str
     source: str
     meta: dict = field(default_factory=dict, repr=False)
+    other_direction: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def shape(self) -> tuple:
@@ -140,6 +144,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise MarkcalError(f"not a readable {name.upper()} image ({first})", path) from None
     data = np.asarray(data, np.float64)
+    other = meta.pop(OTHER_DIRECTION, None)
     if data.ndim != 2 or min(data.shape) < 8:
         raise MarkcalError(f"not a 2-D image (shape {data.shape})", path)
     fin = np.isfinite(data)
@@ -155,6 +160,7 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
     if isinstance(px, tuple):
         data, px, meta = _square_pixels(data, *px, meta, path)
         fin = np.isfinite(data)
+        other = None                     # resampled along one axis: the two directions are not compared
     if px is None or not np.isfinite(px) or px <= 0:
         raise MarkcalError(f"{meta.get('pixel_problem', 'image has no pixel size')}: give --pixel-size-um", path)
     if kind is not None:
@@ -172,7 +178,14 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
             data = data.copy()
             data[blank] = np.nan
             meta = dict(meta, blank_rows=int(blank.sum()))
-    return Image(data=data, pixel_um=float(px), kind=guess, source=path, meta=meta)
+        if other is not None:
+            other = np.array(other, np.float64)
+            other[~np.isfinite(data)] = np.nan
+            if not np.isfinite(other).any():
+                other = None
+    else:
+        other = None
+    return Image(data=data, pixel_um=float(px), kind=guess, source=path, meta=meta, other_direction=other)
 
 
 #: longest pixel side over the shortest that is still resampled to a map (beyond: lines, not a map)
@@ -488,6 +501,7 @@ def _read_ibw(path, channel=None):
     layer_names = [lab.decode("latin-1") if isinstance(lab, bytes) else str(lab)
                    for lab in (labels[2] if len(labels) > 2 else [])]
     layer_names = layer_names[1:] if layer_names else []        # the first is the dimension's own label
+    other_plane = None                    # the same layer scanned the other way (trace / retrace)
     if data.ndim == 3:
         if layer_names:
             chans = [_ibw_channel(n, i) for i, n in enumerate(layer_names)]
@@ -497,6 +511,10 @@ def _read_ibw(path, channel=None):
             pick = 0
         plane = data[:, :, pick]
         channel = layer_names[pick] if layer_names else "layer 0"
+        if layer_names:
+            other = other_direction(chans, chans[pick])
+            if other is not None:
+                other_plane = data[:, :, other.load()]
     elif data.ndim == 2:
         _single_channel("wave", channel)
         plane, channel = data, "wave"
@@ -526,6 +544,8 @@ def _read_ibw(path, channel=None):
             "z_unit_in_file": "m" if zscale == 1e9 else "nm (guessed from the range)",
             "scan_size_um": float(note["ScanSize"]) * 1e6 if "ScanSize" in note else None,
             "imaging_mode": note.get("ImagingMode", "")}
+    if other_plane is not None:
+        meta[OTHER_DIRECTION] = np.asarray(other_plane, np.float64).T[::-1] * zscale
     return img * zscale, px, "afm", meta
 
 

@@ -6,7 +6,7 @@ towards +y.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -85,6 +85,15 @@ class Imprint:
     def d_um(self) -> float:
         """Mean diagonal (the ISO 6507 d)."""
         return 0.5 * (self.diag1_um + self.diag2_um)
+
+    def moved(self, dx_um: float, dy_um: float = 0.0) -> "Imprint":
+        """The same imprint moved by (dx_um, dy_um): centre, corners, boundary, floor and chips; sizes unchanged."""
+        step = np.array([dx_um, dy_um])
+        return replace(self, x_um=self.x_um + dx_um, y_um=self.y_um + dy_um,
+                       corners_um=np.asarray(self.corners_um) + step,
+                       contour_um=None if self.contour_um is None else np.asarray(self.contour_um) + step,
+                       floor_um=None if self.floor_um is None else (self.floor_um[0] + dx_um, self.floor_um[1] + dy_um),
+                       chips_um=tuple(np.asarray(c) + step for c in self.chips_um))
 
 
 # ----------------------------------------------------------------------------- helpers

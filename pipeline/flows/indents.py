@@ -27,6 +27,7 @@ from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
 from markcal.stages.errors import MarkcalError
 from markcal.stages.image_io import Image, read_image
 from markcal.stages.level import level_afm
+from markcal.stages.scan_lag import scan_lag, unlag
 from markcal.stages.text_maps import is_text_matrix
 
 #: QA limits (paper sec. 4): diameter within +-150 nm of nominal, H/D >= 0.04
@@ -237,6 +238,23 @@ def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     return lv, _afm_imprints(lv, px)
 
 
+def _scan_lag_px(img: Image, say, name, info) -> float:
+    """The z loop's lag along the fast axis (px), where the file holds the channel's other scan direction too
+    (half the two directions' offset; ``stages/scan_lag``); 0 without it or where the two do not match."""
+    if img.other_direction is None:
+        return 0.0
+    lag = scan_lag(img.data, img.other_direction)
+    info["scan_lag_correlation"] = lag.correlation
+    if not lag.usable:
+        say(f"{name}: the channel's two scan directions do not match (slopes' correlation {lag.correlation:.2f}, "
+            f"offset {2 * lag.lag_px:+.2f} px): positions keep the z loop's lag")
+        return 0.0
+    info["scan_lag_px"] = lag.lag_px
+    say(f"{name}: trace and retrace {abs(2 * lag.lag_px):.2f} px apart along the fast axis: positions moved by "
+        f"the z loop's lag, {-lag.lag_px:+.2f} px")
+    return lag.lag_px
+
+
 def _refuse_inverted(lv, px):
     """Raise when a levelled map's heights look inverted: more stands up than lies down, and most of what stands
     up is imprints turned over (pile-up lobes turned over are pits, which had been reported as imprints). The
@@ -355,6 +373,11 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         if spec is None and filled:
             lv, imps = _level_at_corners(heights, lv, px, imps, floor, say, name, info)
         image = lv.z_nm
+        if lag_px := _scan_lag_px(img, say, name, info):
+            # every slope lies lag_px along the fast axis from the surface, sizes are not changed by it:
+            # positions are moved back, and the map shown with them
+            imps = [m if m is None else m.moved(-lag_px * px) for m in imps]
+            image = unlag(image, lag_px)
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
     elif spec is None and (single := _micrograph_single(img, say, info)):
         # one or more single imprints (at least MIN_DIAGONAL_PX across): corners from the four-facet fit
@@ -468,6 +491,8 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "n_files_flatten_uncertain": int(sum(bool(f.info.get("line_flatten_uncertain")) for f in files)),
         "n_files_levelled_to_corners": int(sum(bool(f.info.get("levelled_to_corners")) for f in files)),
         "corner_level_nm": files[0].info.get("corner_level_nm") if files[0].info.get("levelled_to_corners") else None,
+        "n_files_lag_removed": int(sum(f.info.get("scan_lag_px") is not None for f in files)),
+        "scan_lag_px": files[0].info.get("scan_lag_px"),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),
