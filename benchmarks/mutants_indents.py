@@ -22,6 +22,7 @@ _FB_CHIPS = "tests/test_independent_renders.py::test_feedback_render_chips_are_l
 _FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_longer_carry_the_corners_out"
 _FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
 _CORNER_LEVEL = "tests/test_indent_corner_level.py"
+_LAG = "tests/test_scan_lag.py"
 _FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
 
 MUTANTS_INDENTS = [
@@ -596,5 +597,33 @@ MUTANTS_INDENTS = [
         "old": "        cut = False\n",
         "new": "        pass\n",
         "tests": ["tests/test_independent_renders.py::test_chip_running_to_the_border_does_not_cut_the_imprint"],
+    },
+    {   # the whole offset between trace and retrace taken as the lag (session 22)
+        "name": "scanlag-not-halved",
+        "file": "stages/scan_lag.py",
+        "old": "    return ScanLag(lag_px=float(s[best]) / 2.0, correlation=float(vals[best] / norm))\n",
+        "new": "    return ScanLag(lag_px=float(s[best]), correlation=float(vals[best] / norm))\n",
+        "tests": [_LAG],
+    },
+    {   # any two channels trusted, however little they match (session 22)
+        "name": "scanlag-no-correlation-gate",
+        "file": "stages/scan_lag.py",
+        "old": "        return bool(self.correlation >= MIN_CORRELATION and abs(self.lag_px) <= LAG_MAX_PX)\n",
+        "new": "        return bool(abs(self.lag_px) <= LAG_MAX_PX)\n",
+        "tests": [_LAG],
+    },
+    {   # positions moved the way of the lag instead of back (session 22)
+        "name": "scanlag-moved-with-the-lag",
+        "file": "pipeline/flows/indents.py",
+        "old": "            imps = [m if m is None else m.moved(-lag_px * px) for m in imps]\n",
+        "new": "            imps = [m if m is None else m.moved(lag_px * px) for m in imps]\n",
+        "tests": [_LAG],
+    },
+    {   # the picked layer handed over as its own other direction (session 22)
+        "name": "io-ibw-other-direction-itself",
+        "file": "stages/image_io.py",
+        "old": "                other_plane = data[:, :, other.load()]\n",
+        "new": "                other_plane = data[:, :, pick]\n",
+        "tests": [_LAG],
     },
 ]

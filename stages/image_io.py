@@ -23,7 +23,8 @@ waves, which have no magic bytes). Supported:
   ``stages/text_maps``); without the header the height unit is unknown and the file is refused.
 - Igor binary wave ``.ibw`` (igor2) as Asylum Research writes it: a 3-D wave
   whose layers are labelled (``HeightRetrace``, ``AmplitudeRetrace``, ...);
-  the Height layer is read (the trace before the retrace), heights in m.
+  the Height layer is read (the trace before the retrace), heights in the wave's
+  data units (empty: m on an Asylum image, refused otherwise).
 
 Every reader returns an :class:`Image`, row 0 at the top of the scan, x to the
 right, y down the rows.
@@ -537,16 +538,31 @@ def _read_ibw(path, channel=None):
                              img.shape[1], img.shape[0])
     elif "ScanSize" in note:
         px = float(note["ScanSize"]) * 1e6 / img.shape[1]
-    fin = img[np.isfinite(img)]
-    # Asylum stores heights in m; a wave in nm would have a range far above 1e-4
-    zscale = 1e9 if fin.size and np.ptp(fin) < 1e-3 else 1.0
-    meta = {"format": "ibw", "channel": channel, "layers": layer_names,
-            "z_unit_in_file": "m" if zscale == 1e9 else "nm (guessed from the range)",
+    zscale, z_unit = _ibw_height_unit(w, hdr, bool(layer_names) or "ScanSize" in note, channel)
+    meta = {"format": "ibw", "channel": channel, "layers": layer_names, "z_unit_in_file": z_unit,
             "scan_size_um": float(note["ScanSize"]) * 1e6 if "ScanSize" in note else None,
             "imaging_mode": note.get("ImagingMode", "")}
     if other_plane is not None:
         meta[OTHER_DIRECTION] = np.asarray(other_plane, np.float64).T[::-1] * zscale
     return img * zscale, px, "afm", meta
+
+
+def _ibw_height_unit(w, hdr, asylum: bool, channel: str) -> tuple:
+    """nm per stored unit of an Igor wave's heights and the unit as found: the wave's data units (extended ones
+    first), else, for an Asylum Research image (labelled layers or its note's ``ScanSize``) whose data units
+    are empty, Asylum's convention of SI metres for its height layers. Raises where neither tells a length."""
+    ext = w.get("data_units", b"") or b""
+    short = b"".join(hdr["dataUnits"]) if not isinstance(hdr["dataUnits"], bytes) else hdr["dataUnits"]
+    unit = (ext or short).decode("latin-1").replace("\x00", "").strip()
+    if unit:
+        nm = height_nm_per_unit(unit)
+        if nm is None:
+            raise MarkcalError(f"channel '{channel}' is in '{unit}', not a height unit")
+        return nm, unit
+    if asylum:
+        return 1e9, "m (Asylum's convention: the wave's data units are empty)"
+    raise MarkcalError("Igor wave has no data units and is not an Asylum Research image: its height unit is "
+                       "unknown")
 
 
 def _ibw_channel(label, index) -> Channel:

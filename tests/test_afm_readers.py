@@ -490,3 +490,52 @@ def test_real_nanoscope_map_through_a_gwyddion_text_export(tmp_path):
     nm_per_lsb = 0.006693481 * 12.95302                                    # header: V/LSB x Sens. Zscan nm/V
     assert txt.pixel_um == pytest.approx(2.0 / 512, rel=1e-6) and txt.meta["format"] == "text"
     assert np.abs(txt.data[::-1] / nm_per_lsb - raw_ref).max() < 0.01     # file order: first line = bottom
+
+
+@pytest.mark.parametrize("unit, nm_per_unit", [("m", 1e9), ("um", 1e3), ("nm", 1.0)])
+def test_ibw_heights_from_the_waves_data_units(tmp_path, unit, nm_per_unit):
+    """The wave's data units decide the heights' scale (before: m or nm guessed from the range, so a map in µm
+    was read 1000 times too deep)."""
+    from markcal.fixtures.indent_maps import ibw_bytes
+    z = np.random.default_rng(3).normal(0, 2.0, (16, 16))
+    path = tmp_path / "u.ibw"
+    path.write_bytes(ibw_bytes({"HeightTrace": z}, 1e-7, data_unit=unit))
+    img = read_image(str(path))
+    assert np.allclose(img.data, z * nm_per_unit, rtol=1e-6, atol=1e-6 * nm_per_unit)
+    assert img.meta["z_unit_in_file"] == unit
+
+
+def test_ibw_without_data_units(tmp_path):
+    """Empty data units: an Asylum image (labelled layers) is in metres by Asylum's convention and says so; a bare
+    2-D wave gives no height unit and is refused in one line; a unit that is no length is refused."""
+    from markcal.fixtures.indent_maps import ibw_bytes
+    z = np.random.default_rng(4).normal(0, 1e-9, (16, 16))
+    path = tmp_path / "asylum.ibw"
+    path.write_bytes(ibw_bytes({"HeightTrace": z, "AmplitudeTrace": z}, 1e-7, data_unit=""))
+    img = read_image(str(path))
+    assert np.allclose(img.data, z * 1e9, atol=1e-6) and "Asylum" in img.meta["z_unit_in_file"]
+    bare = tmp_path / "bare.ibw"
+    bare.write_bytes(_two_d_ibw(z, ""))
+    with pytest.raises(MarkcalError, match="no data units"):
+        read_image(str(bare))
+    volts = tmp_path / "volts.ibw"
+    volts.write_bytes(_two_d_ibw(z, "V"))
+    with pytest.raises(MarkcalError, match="'V', not a height unit"):
+        read_image(str(volts))
+
+
+def _two_d_ibw(z, unit):
+    """A plain 2-D Igor wave (no layer labels, no note) with data units ``unit``: the fixture's one-layer 3-D wave
+    with its third dimension set to 0 and its labels cut off (TN003: BinHeader5 dimLabelsSize[2] at byte 44,
+    WaveHeader5 nDim[2] at 64 + 76), the checksum made again."""
+    import struct
+    from markcal.fixtures.indent_maps import ibw_bytes
+    raw = bytearray(ibw_bytes({"H": z}, 1e-7, data_unit=unit))
+    labels = struct.unpack_from("<i", raw, 44)[0]
+    struct.pack_into("<i", raw, 44, 0)
+    struct.pack_into("<i", raw, 64 + 76, 0)
+    del raw[len(raw) - labels:]
+    struct.pack_into("<h", raw, 2, 0)
+    total = int(np.frombuffer(bytes(raw[:384]), "<i2").astype(np.int64).sum())
+    struct.pack_into("<h", raw, 2, ((-total + 32768) % 65536) - 32768)
+    return bytes(raw)
