@@ -23,6 +23,7 @@ _FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_l
 _FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
 _CORNER_LEVEL = "tests/test_indent_corner_level.py"
 _LAG = "tests/test_scan_lag.py"
+_FB_LONG = "tests/test_independent_renders.py::test_feedback_render_chips_along_much_of_an_edge"
 _FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
 
 MUTANTS_INDENTS = [
@@ -531,15 +532,15 @@ MUTANTS_INDENTS = [
     {   # chips left in the contact area (session 19)
         "name": "edges-chips-kept",
         "file": "stages/indent_edges.py",
-        "old": "                out[run] = onto\n",
-        "new": "                pass\n",
+        "old": "            out[run] = onto\n",
+        "new": "            pass\n",
         "tests": [_FB_CHIPS],
     },
     {   # any outward run taken for a chip, without its flat floor (session 19)
         "name": "edges-no-shelf-test",
         "file": "stages/indent_edges.py",
-        "old": "            if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):\n",
-        "new": "            if True:\n",
+        "old": "        if _is_shelf(between[:, 1], between[:, 0], z, slope):\n",
+        "new": "        if True:\n",
         "tests": ["tests/test_indent_edges.py"],
     },
     {   # the asymmetric term free from the first round: a chip at one end bends the curve out (session 19)
@@ -547,7 +548,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_edges.py",
         "old": "        if i < FIT_ITER:\n",
         "new": "        if False:\n",
-        "tests": [_FB_CHIPS],
+        "tests": [_FB_CHIPS, _FB_LONG, "tests/test_indent_edges.py"],
     },
     {   # a round's far-field surface fitted once, pile-up tails and all (session 19)
         "name": "level-round-surface-untrimmed",
@@ -625,5 +626,26 @@ MUTANTS_INDENTS = [
         "old": "                other_plane = data[:, :, other.load()]\n",
         "new": "                other_plane = data[:, :, pick]\n",
         "tests": [_LAG],
+    },
+    {   # an edge bowed out beyond its neighbours kept as first fitted, chips along much of it left in (session 22)
+        "name": "edges-no-refit-from-neighbours",
+        "file": "stages/indent_edges.py",
+        "old": "        if ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
+        "new": "        if False:\n",
+        "tests": ["tests/test_indent_edges.py", _FB_LONG],
+    },
+    {   # the refit started from the neighbours' bow but with the first fit's wide tolerance (session 22)
+        "name": "edges-refit-wide-start",
+        "file": "stages/indent_edges.py",
+        "old": "                              start_tol=max(tol, REFIT_TOL_CHIP * chip_min))\n",
+        "new": "                              start_tol=None)\n",
+        "tests": ["tests/test_indent_edges.py", _FB_LONG],
+    },
+    {   # an edge whose first curve found a small chip not fitted again: the chip along much of it left in (session 22)
+        "name": "edges-refit-only-without-chips",
+        "file": "stages/indent_edges.py",
+        "old": "        if ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
+        "new": "        if not runs and ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
+        "tests": ["tests/test_indent_edges.py", _FB_LONG],
     },
 ]

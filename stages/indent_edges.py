@@ -26,6 +26,7 @@ TOL_PX = 1.0               # final tolerance: the boundary's roughness and the c
 TOL_HALF_D = 0.015         # ... or this of d/2, the larger
 CHIP_MIN_PX = 3.0          # a chip stands out of the edge by this (px) ...
 CHIP_MIN_HALF_D = 0.06     # ... and this of d/2 at least (the feedback renderer's chips: 0.1-0.3 of d/2)
+REFIT_TOL_CHIP = 0.5       # an edge fitted again from its neighbours' bow starts at this much of a chip's least width
 CORNER_KEEP_T = 0.04       # the boundary this close to a corner (fraction of the edge) is the corner's own
 SHELF_SLOPES = 0.5         # a chip's floor is a shelf: a tenth of the region or more sloping under half a facet's
 SHELF_SHARE = 0.1          # slope (its walls, smeared by the z loop, take the rest: 25-75 % on the feedback
@@ -64,18 +65,20 @@ def _curve(t, coef):
     return t * (1 - t) * (coef[0] + coef[1] * t)
 
 
-def _fit_edge(t, off, half_d, tol):
+def _fit_edge(t, off, half_d, tol, start_mid=0.0, start_tol=None):
     """Edge curve fitted to the boundary points that lie on it.
 
-    Started from the chord; each round keeps the points within a tolerance of the last curve,
-    shrinking from a tenth of d/2 (beyond any bow, within most chips' width) to ``tol``: the majority of the
-    edge, neither a chip outwards nor a notch inwards. A symmetric bow first (a chip at one end would
-    otherwise bend the curve's asymmetric term out to it), then both terms on the points left.
+    Started from the chord; each round keeps the points within a tolerance of the last curve, shrinking from a
+    tenth of d/2 (beyond any bow, within most chips' width) to ``tol``: the majority of the edge, neither a chip
+    outwards nor a notch inwards. A symmetric bow first (a chip at one end would otherwise bend the curve's
+    asymmetric term out to it), then both terms on the points left. Fitted again from the neighbours' bow: a
+    symmetric curve ``start_mid`` out at the edge's middle, the tolerance shrinking from ``start_tol``.
     """
-    coef = np.zeros(2)
+    coef = np.array([4.0 * start_mid, 0.0])
     a = np.column_stack([t * (1 - t), t * t * (1 - t)])
+    first = START_TOL_HALF_D * half_d if start_tol is None else start_tol
     for i in range(FIT_ITER + 2):
-        lim = START_TOL_HALF_D * half_d + (tol - START_TOL_HALF_D * half_d) * min(i / (FIT_ITER - 1), 1.0)
+        lim = first + (tol - first) * min(i / (FIT_ITER - 1), 1.0)
         keep = np.abs(off - _curve(t, coef)) < lim
         if keep.sum() < 6:
             break
@@ -86,9 +89,28 @@ def _fit_edge(t, off, half_d, tol):
     return coef
 
 
+@dataclass(frozen=True)
+class _Edge:
+    """One edge's sector of the boundary: its frame, the points' fraction along the chord and outward offset."""
+
+    p0: np.ndarray
+    e: np.ndarray
+    nrm: np.ndarray
+    ln: float
+    sec: np.ndarray
+    t: np.ndarray
+    off: np.ndarray
+
+
 def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: float, d_um: float,
                      heights_nm: np.ndarray, origin_rc, facet_slope_nm_px: float) -> EdgesPastChips:
     """The contact boundary drawn past chips beside the edges (see the module's text).
+
+    An edge whose curve bows out beyond its neighbours' (the lower median of the four middles) by more than a
+    chip's least width is fitted again from their bow: a chip along much of an edge draws the first curve out
+    to it (and a small chip beside it may be all the first curve finds). The chips found beside the second
+    curve replace the first's; a bow that pile-up made finds none there (the region between is the facet,
+    sloping), and the edge keeps its first curve and chips.
 
     Parameters
     ----------
@@ -117,42 +139,62 @@ def edges_past_chips(contour_um: np.ndarray, corners_um: np.ndarray, pixel_um: f
     chip_min = max(CHIP_MIN_PX * pixel_um, CHIP_MIN_HALF_D * half_d)
     ang = np.arctan2(*(c - centre).T[::-1])
     cang = np.arctan2(*(np.asarray(corners_um) - centre).T[::-1])
-    out = c.copy()
-    chipped, outlines = [], []
+    edges, coefs = [], []
     for j in range(k):
         p0, p1 = np.asarray(corners_um[j], float), np.asarray(corners_um[(j + 1) % k], float)
         e, nrm, ln = edge_frame(p0, p1, centre)
         # the boundary's points between the two corners' directions (the sector of this edge)
         span = (cang[(j + 1) % k] - cang[j]) % (2 * np.pi)
         rel_ang = (ang - cang[j]) % (2 * np.pi)
-        forward = span < np.pi
-        sec = (rel_ang < span) if forward else (rel_ang > span)
+        sec = (rel_ang < span) if span < np.pi else (rel_ang > span)
         t = (c - p0) @ e / ln
         off = (c - p0) @ nrm
         sec &= (t > CORNER_KEEP_T) & (t < 1 - CORNER_KEEP_T)
-        if sec.sum() < 8:
+        edges.append(_Edge(p0, e, nrm, ln, sec, t, off) if sec.sum() >= 8 else None)
+        coefs.append(_fit_edge(t[sec], off[sec], half_d, tol) if sec.sum() >= 8 else None)
+    mids = [_curve(0.5, cf) for cf in coefs if cf is not None]
+    ref_mid = float(np.sort(mids)[(len(mids) - 1) // 2]) if len(mids) >= 3 else None      # the lower median
+    heights = (heights_nm, np.asarray(origin_rc), facet_slope_nm_px, pixel_um)
+    out = c.copy()
+    chipped, outlines = [], []
+    for j, (edge, coef) in enumerate(zip(edges, coefs)):
+        if edge is None:
             continue
-        coef = _fit_edge(t[sec], off[sec], half_d, tol)
-        resid = np.full(len(c), np.nan)
-        resid[sec] = off[sec] - _curve(t[sec], coef)
-        moved = False
-        for run in _runs(np.where(sec, resid > tol, False)):
-            if np.nanmax(resid[run]) < chip_min:
-                continue
-            run = _grow(run, sec, resid, tol)
-            tt = np.clip(t[run], 0.0, 1.0)
-            onto = p0 + np.outer(tt * ln, e) + np.outer(_curve(tt, coef), nrm)
-            outline = np.vstack([c[run], onto[::-1]])                       # the region between, µm
-            between = outline / pixel_um - np.asarray(origin_rc)[::-1]      # (col, row) of the window
-            if _is_shelf(between[:, 1], between[:, 0], heights_nm, facet_slope_nm_px):
-                out[run] = onto
-                outlines.append(outline)
-                moved = True
-        if moved:
+        runs = _chips(c, edge, coef, tol, chip_min, heights)
+        if ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:
+            coef2 = _fit_edge(edge.t[edge.sec], edge.off[edge.sec], half_d, tol, start_mid=ref_mid,
+                              start_tol=max(tol, REFIT_TOL_CHIP * chip_min))
+            if _curve(0.5, coef2) < _curve(0.5, coef) - tol and (runs2 := _chips(c, edge, coef2, tol, chip_min,
+                                                                                  heights)):
+                runs = runs2
+        for run, onto, outline in runs:
+            out[run] = onto
+            outlines.append(outline)
+        if runs:
             chipped.append(j)
     area = shoelace(c) - shoelace(out) if chipped else 0.0
     return EdgesPastChips(contour_um=out, chipped_area_um2=float(max(area, 0.0)), chipped_edges=tuple(chipped),
                           chips_um=tuple(outlines))
+
+
+def _chips(c, edge: _Edge, coef, tol, chip_min, heights) -> list:
+    """The chips beside one edge: runs of the boundary more than ``tol`` outside the edge curve ``coef``, standing
+    out by ``chip_min`` somewhere, over a shelf. Each as (indices, the run put onto the curve, its outline)."""
+    z, origin_rc, slope, pixel_um = heights
+    resid = np.full(len(c), np.nan)
+    resid[edge.sec] = edge.off[edge.sec] - _curve(edge.t[edge.sec], coef)
+    found = []
+    for run in _runs(np.where(edge.sec, resid > tol, False)):
+        if np.nanmax(resid[run]) < chip_min:
+            continue
+        run = _grow(run, edge.sec, resid, tol)
+        tt = np.clip(edge.t[run], 0.0, 1.0)
+        onto = edge.p0 + np.outer(tt * edge.ln, edge.e) + np.outer(_curve(tt, coef), edge.nrm)
+        outline = np.vstack([c[run], onto[::-1]])                       # the region between, µm
+        between = outline / pixel_um - origin_rc[::-1]                  # (col, row) of the window
+        if _is_shelf(between[:, 1], between[:, 0], z, slope):
+            found.append((run, onto, outline))
+    return found
 
 
 def _is_shelf(rows, cols, z, slope):

@@ -427,6 +427,19 @@ def test_feedback_render_chips_are_left_out_of_the_area(tmp_path, seed):
     assert got["tab"]["chipped_area_um2"][got["k"]] > 0.02 * got["tab"]["area_um2"][got["k"]]
 
 
+@pytest.mark.parametrize("seed, before_pct", [(42, 3.31), (51, 4.16), (59, 11.86), (130, 3.66)])
+def test_feedback_render_chips_along_much_of_an_edge(tmp_path, seed, before_pct):
+    """Every artefact drawn. Chips along much of an edge drew the edge's first curve out to them (seed 59: two
+    edges' middles 1.0 µm out, the other two 0.55 µm in), so nothing stood out of it: area +3.31, +4.16, +11.86,
+    +3.66 % before session 22 (seed 130: its first curve found only a small chip beside the long one). Such an
+    edge is fitted again from the other edges' bow: -0.07, +0.45, +2.61, +0.31 %. Held to the 1 % goal, seed 59
+    (a second chip beside a corner, 85 % fill) to 3 %."""
+    got = {}
+    _d, _depth, area, _corner, _t = _feedback_errors(tmp_path, seed, table=got)
+    assert abs(area) <= (3.0 if seed == 59 else 1.0), (area, before_pct)
+    assert got["tab"]["chipped_area_um2"][got["k"]] > 0.02 * got["tab"]["area_um2"][got["k"]]
+
+
 def test_feedback_render_facet_wiggle_is_no_chip(tmp_path):
     """Seed 9 without chips: a shear step bends one edge into an S that no smooth edge curve follows. A first
     version of the edge fit (trimmed on the outward side only) took the S for a chip: area -2.03 -> -3.15 %.
