@@ -284,13 +284,15 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # with everything standing above the surface (the map is levelled), grown by 3 px
     outside = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
     far = outside & ~ndimage.binary_dilation(zs > thr, iterations=3)
-    if far.sum() < 30:
-        far = outside
-    if far.sum() < 30:
-        far = fin & ~pit
-    if far.sum() < 12:
+    if far.sum() >= 30:
+        pl = robust_plane(cc[far].astype(float), rr[far].astype(float), zz0[far], n_iter=6)
+    elif (fin & ~pit).sum() >= 12:
+        # no surface around the imprint but its pile-up (an imprint filling the map): the map's own level is
+        # kept; a plane through what stood outside sat on the pile-up, 30-50 nm up (feedback seed 6), and
+        # undid the level beyond the corners
+        pl = np.zeros(3)
+    else:
         return None
-    pl = robust_plane(cc[far].astype(float), rr[far].astype(float), zz0[far], n_iter=6)
     zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
     zs = ndimage.gaussian_filter(zr, 1.0)
     fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit, noise)
