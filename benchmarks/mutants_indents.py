@@ -648,4 +648,11 @@ MUTANTS_INDENTS = [
         "new": "        if not runs and ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
         "tests": ["tests/test_indent_edges.py", _FB_LONG],
     },
+    {   # the imprint's own plane through what stood outside it where no surface is left but pile-up (session 22)
+        "name": "single-far-field-on-pile-up",
+        "file": "stages/indent_single.py",
+        "old": "        pl = np.zeros(3)\n",
+        "new": "        pl = robust_plane(cc[outside].astype(float), rr[outside].astype(float), zz0[outside], n_iter=6)\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_pile_up_all_round_keeps_the_maps_level"],
+    },
 ]
