@@ -15,11 +15,15 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "tongue_mask", "unless_crack"]
+from .indent_level import strip_level
+
+__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "surface_beyond", "tongue_mask",
+           "unless_crack"]
 
 CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
+BEYOND_MAX_SLOPES = 2.0    # the surface beyond a corner lies within this many facet slopes (nm per px) under 0
 V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
 
 
@@ -55,7 +59,7 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     t_all = rel @ np.array([-e[1], e[0]])
     z_all = zr[rr, cc].ravel()
     below = (s_all > length - 9) & (s_all < length + 0.5) & np.isfinite(z_all) \
-        & (z_all < -max(3 * noise, 1.5 * slope_floor))
+        & (z_all < min(level, 0.0) - max(3 * noise, 1.5 * slope_floor))
     # the V over V_WIDE_PX across (a cusp's V, where the edges sink in, is too shallow within 3 px), or over
     # 3 px where a crack runs down the valley (the wider V takes in more of it)
     for half in (V_WIDE_PX, 3.0):
@@ -99,24 +103,32 @@ def _v_fit(s, t, z):
     return np.append(k_all[j], t0[j, 0])
 
 
-def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr):
+def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
     """Refine a corner on the profile from the floor ``rc0`` through the coarse corner ``rc1``.
 
     ``zc``: cubic spline coefficients of the levelled heights (``ndimage.spline_filter``); ``zr``: the
     levelled heights themselves.
 
     The ray is aimed along the valley between the two facets; the corner (where the valley meets the
-    original level) is where a V fitted to the valley's own pixels crosses 0 (:func:`_valley_crossing`).
-    Where that fit fails, a straight line through the interpolated profile of the last few pixels before
-    the coarse corner gives it. Returns the corner (row, col) and the V's slope along the valley (nm per px;
-    None without the V).
+    original level) is where a V fitted to the valley's own pixels crosses the surface (:func:`_valley_crossing`):
+    with ``local_level``, the surface just beyond the corner where it lies below the map's zero
+    (:func:`surface_beyond`; pile-up vanishes at a Vickers imprint's corners, and its tails, a bow or drifting
+    lines left in put the map's zero above the surface there: d +0.6 to +1.5 % on feedback-renderer seeds), else
+    0; where it lies above (a rim round the corners), or more than ``BEYOND_MAX_SLOPES`` facet slopes below (the
+    window in a chip, a crack or the valley), 0 all the same. Where that fit fails, a straight line
+    through the interpolated profile of the last few pixels before the coarse corner gives it. Returns the
+    corner (row, col) and the V's slope along the valley (nm per px; None without the V).
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
     if length < 4:
         return np.asarray(rc1, float), None
     e = _aim_at_valley(zc, rc0, v / length, length)
-    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise)
+    level = min(surface_beyond(zr, rc0 + length * e, e), 0.0) if local_level else 0.0
+    if level < -BEYOND_MAX_SLOPES * slope_floor:
+        level = 0.0                       # no surface: the window reached into a chip, a crack or the valley
+    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
+                           reach=2.5 + abs(level) / max(slope_floor, 1e-9))
     if fit is not None:
         return rc0 + fit[0] * e, fit[1]
     s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
@@ -166,22 +178,31 @@ def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, w
         return rc0 + start * e, False
     b = int(np.flatnonzero(steep_then_flat)[np.argmin(msr[steep_then_flat])])
     j, k = int(cand[b]), ks[b]
-    # the rise carried on to the surface around the corner (the median beyond the kink, a crack's few
-    # pixels and the imprint's corner left out by the median)
-    lo = np.maximum(np.floor(pts[j] - 2 * window_px).astype(int), 0)
-    hi = np.minimum(np.ceil(pts[j] + 2 * window_px).astype(int) + 1, zr.shape)
-    zz = np.empty(0)
-    if np.all(hi > lo):                                  # a kink beyond the map's border has no window
-        rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
-        sa = (rr - pts[j][0]) * e[0] + (cc - pts[j][1]) * e[1]
-        ta = (cc - pts[j][1]) * e[0] - (rr - pts[j][0]) * e[1]
-        zz = zr[rr, cc][(sa > 2.0) & (sa < window_px) & (np.abs(ta) < window_px)]
-        zz = zz[np.isfinite(zz)]
-    level = float(np.median(zz)) if len(zz) >= 20 else 0.0
+    # the rise carried on to the surface around the corner
+    level = surface_beyond(zr, pts[j], e, window_px, window_px)
     shift = max((level - k[0]) / k[1], 0.0)
     # where the valley's own V (fitted to its pixels, a crack down it left out) reaches that level
     fit = _valley_crossing(zr, pts[j] - 20.0 * e, e, 20.0, slope_floor, noise, level, reach=shift + 3.0)
     return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True
+
+
+def surface_beyond(zr, rc, e, reach_px=12.0, half_px=12.0, sigma=None):
+    """The original surface's level (nm) just beyond a corner at ``rc`` (row, col) on the diagonal ``e``, from the
+    heights 2 to ``reach_px`` px on along ``e`` and ``half_px`` either side of it: their median, or with the noise
+    ``sigma`` the median of those near their upper quartile (:func:`.indent_level.strip_level`: a radial crack down
+    a narrow strip left out); 0 with under 20 such pixels (the map's border)."""
+    lo = np.maximum(np.floor(rc - reach_px - half_px).astype(int), 0)
+    hi = np.minimum(np.ceil(rc + reach_px + half_px).astype(int) + 1, zr.shape)
+    if not np.all(hi > lo):                              # beyond the map's border: no window
+        return 0.0
+    rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
+    sa = (rr - rc[0]) * e[0] + (cc - rc[1]) * e[1]
+    ta = (cc - rc[1]) * e[0] - (rr - rc[0]) * e[1]
+    zz = zr[rr, cc][(sa > 2.0) & (sa < reach_px) & (np.abs(ta) <= half_px)]
+    zz = zz[np.isfinite(zz)]
+    if len(zz) < 20:
+        return 0.0
+    return float(np.median(zz)) if sigma is None else strip_level(zz, sigma)
 
 
 def _kink_fits(s, z, window_px):

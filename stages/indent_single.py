@@ -235,7 +235,7 @@ def _fill_line_gaps(z, max_gap=MAX_FILLED_GAP):
 
 
 def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: float, col: float,
-                   radius_px: float, indenter: Indenter = VICKERS) -> SingleImprint | None:
+                   radius_px: float, indenter: Indenter = VICKERS, local_level: bool = True) -> SingleImprint | None:
     """Measure one imprint in a levelled map (original surface near 0) without a facet model.
 
     Parameters
@@ -250,6 +250,9 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
         Candidate from ``detect_pits`` (px).
     indenter : Indenter
         Geometry (number of corners).
+    local_level : bool
+        Corners where the valleys meet the surface just beyond them where it lies below the map's zero
+        (:func:`.indent_corners.corner_on_ray`); without, where they meet 0.
 
     Returns
     -------
@@ -340,7 +343,8 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
             return None
         proj = rel[sec] @ e
         coarse = cont_rc[sec][int(np.argmax(proj))]
-        on_ray, v_slope = corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise, zr)
+        on_ray, v_slope = corner_on_ray(zc, np.array([fr, fc]) - [r0, c0], coarse - [r0, c0], slope_px, noise, zr,
+                                        local_level)
         # a V as steep as the facets ends there: the valley's own end, no crack's
         if not (v_slope or 0.0) > VALLEY_END_SLOPES * slope_px:
             trace = trace or _trace_from(zs, pit, depth, noise)

@@ -1,5 +1,6 @@
 """The valley's kink fits (stages/indent_corners._kink_fits): all candidates at once, as each alone."""
 import numpy as np
+import pytest
 
 from markcal.stages.indent_corners import _kink_fits
 
@@ -24,3 +25,36 @@ def test_kink_fits_match_each_windows_least_squares_and_find_the_kink():
     b = int(np.flatnonzero(steep_then_flat)[np.argmin(msr[steep_then_flat])])
     assert abs(s[cand[b]] - 30.0) <= 0.5
     assert abs(ks[b, 1] - 40.0) <= 1.0 and abs(ks[b, 2] - 2.0) <= 1.0
+
+
+def _diamond_pit(level_nm, a_px=40.0, depth_nm=1000.0, n=128):
+    """A sharp square pyramid (diagonals along the axes, half-diagonal ``a_px`` where it meets 0) in a surface at
+    ``level_nm`` (below 0: the map's zero above the surface, as pile-up's tails or a bow left in put it)."""
+    rr, cc = np.mgrid[0:n, 0:n].astype(float)
+    c = (n - 1) / 2
+    pyr = -depth_nm + depth_nm / a_px * (np.abs(rr - c) + np.abs(cc - c))
+    return np.minimum(pyr, level_nm), c
+
+
+@pytest.mark.parametrize("level_nm", [-20.0, -40.0])
+def test_corner_on_the_surface_beyond_it(level_nm):
+    """The surface 20-40 nm under the map's zero: the valley meets it a (1 + level / depth) from the floor (0.8-1.6 px
+    short of where it would meet 0). With the local level the corner is within 0.1 px of that; at 0 it lies
+    beyond by more than half the difference; a surface above 0 (a rim) is not taken."""
+    from markcal.stages.indent_corners import corner_on_ray
+    from scipy import ndimage
+    z, c = _diamond_pit(level_nm)
+    zc = ndimage.spline_filter(z, order=3, mode="nearest")
+    slope = 1000.0 / 40.0
+    true_px = 40.0 * (1 + level_nm / 1000.0)
+    coarse = np.array([c, c + true_px + 1.0])
+    got, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=True)
+    assert abs(got[1] - c - true_px) <= 0.1 and abs(got[0] - c) <= 0.1
+    at0, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=False)
+    assert at0[1] - c - true_px >= 0.5 * (40.0 - true_px)
+    rim, _ = _diamond_pit(0.0)
+    rim = np.where(rim >= 0.0, 15.0, rim)                               # a rim 15 nm up all round
+    zc_rim = ndimage.spline_filter(rim, order=3, mode="nearest")
+    on_rim, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=True)
+    plain, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=False)
+    assert np.allclose(on_rim, plain)

@@ -195,30 +195,31 @@ def _check_fits(img: Image, spec: ArraySpec):
                            f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
 
 
-def _afm_imprint(lv, px, r, c, rad):
+def _afm_imprint(lv, px, r, c, rad, local_level=True):
     """One AFM imprint: the model-free measurement, and the facet model where it is used.
 
     A large imprint (``LARGE_IMPRINT_PX``) takes everything from the model-free measurement;
     its ``apex_depth_nm`` comes from closed-form plane fits per facet instead of the (slow)
-    facet model.
+    facet model. ``local_level``: corners on the surface just beyond them (``measure_single``).
     """
-    single = measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad)
+    single = measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad, local_level=local_level)
     if single is not None and single.d_um / px >= sel.LARGE_IMPRINT_PX:
         m = sel.merge_afm(None, single, px)
         return dataclasses.replace(m, apex_depth_nm=facet_apex_nm(lv.z_nm, px, single))
     return sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars), single, px)
 
 
-def _afm_imprints(lv, px) -> list:
+def _afm_imprints(lv, px, local_level=True) -> list:
     """Every pit of a levelled map, measured (None where the measurement failed)."""
-    return [_afm_imprint(lv, px, r, c, rad) for r, c, rad in ind.detect_pits(lv.z_nm, lv.noise_nm, px)]
+    return [_afm_imprint(lv, px, r, c, rad, local_level) for r, c, rad in ind.detect_pits(lv.z_nm, lv.noise_nm, px)]
 
 
 def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     """Where the surface beyond the imprints' corners lies clearly below the far field's level (pile-up's tails
     under the far field, :func:`markcal.stages.indent_level.corner_level`): the map levelled again with planes
     only, its zero put on that surface, and its imprints measured again. Returns the levelled map and the
-    imprints."""
+    imprints, measured again in any case with the corners on the surface just beyond them (the first
+    measurement, whose corners place the strips, takes them at 0)."""
     found = sel.accept_imprints(imps, px, floor)
     if not found:
         return lv, imps
@@ -228,7 +229,7 @@ def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     info["corner_level_nm"] = lev.offset_nm
     info["levelled_to_corners"] = lev.below_far_field(lv.noise_nm)
     if not info["levelled_to_corners"]:
-        return lv, imps
+        return lv, _afm_imprints(lv, px)
     say(f"{name}: the surface beyond the corners lies {lev.offset_nm:+.1f} nm under the far field's level "
         "(pile-up's tails): levelled to it")
     # planes only (a bow through the tails bends under the imprint), then the strips' level taken as zero
@@ -368,7 +369,8 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
             lv = level_single(heights, px)
         _refuse_inverted(lv, px)
         say(f"{name}: detecting and fitting imprints")
-        imps = _afm_imprints(lv, px)
+        # where the level beyond the corners may follow, the corners that place its strips are taken at 0
+        imps = _afm_imprints(lv, px, local_level=not (spec is None and filled))
         floor = max(5.0, 8 * lv.noise_nm)
         if spec is None and filled:
             lv, imps = _level_at_corners(heights, lv, px, imps, floor, say, name, info)
