@@ -23,6 +23,7 @@ _FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_l
 _FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
 _CORNER_LEVEL = "tests/test_indent_corner_level.py"
 _LAG = "tests/test_scan_lag.py"
+_FB_BEYOND = "tests/test_independent_renders.py::test_feedback_render_corners_on_the_surface_beyond_them"
 _FB_LONG = "tests/test_independent_renders.py::test_feedback_render_chips_along_much_of_an_edge"
 _FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
 
@@ -654,5 +655,33 @@ MUTANTS_INDENTS = [
         "old": "        pl = np.zeros(3)\n",
         "new": "        pl = robust_plane(cc[outside].astype(float), rr[outside].astype(float), zz0[outside], n_iter=6)\n",
         "tests": ["tests/test_independent_renders.py::test_feedback_render_pile_up_all_round_keeps_the_maps_level"],
+    },
+    {   # the corners carried to the map's zero, not to the surface beyond them (session 22)
+        "name": "corners-at-zero-not-the-surface-beyond",
+        "file": "stages/indent_corners.py",
+        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e), 0.0) if local_level else 0.0\n",
+        "new": "    level = 0.0\n",
+        "tests": ["tests/test_indent_corners.py", _FB_BEYOND],
+    },
+    {   # a surface above the map's zero beyond the corners taken too (a rim round them) (session 22)
+        "name": "corners-surface-beyond-above-zero",
+        "file": "stages/indent_corners.py",
+        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e), 0.0) if local_level else 0.0\n",
+        "new": "    level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0\n",
+        "tests": ["tests/test_indent_corners.py", _SINGLE],
+    },
+    {   # the valley's V fitted with pixels of the surface beyond the corner below 0 (session 22)
+        "name": "corners-v-pixels-below-zero",
+        "file": "stages/indent_corners.py",
+        "old": "        & (z_all < min(level, 0.0) - max(3 * noise, 1.5 * slope_floor))",
+        "new": "        & (z_all < -max(3 * noise, 1.5 * slope_floor))",
+        "tests": ["tests/test_indent_corners.py", _FB_BEYOND],
+    },
+    {   # a window in a chip or crack taken as the surface beyond the corner (session 22)
+        "name": "corners-surface-beyond-unbounded",
+        "file": "stages/indent_corners.py",
+        "old": "    if level < -BEYOND_MAX_SLOPES * slope_floor:\n",
+        "new": "    if False:\n",
+        "tests": [_FB_BEYOND, "tests/test_independent_renders.py::test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whole"],
     },
 ]

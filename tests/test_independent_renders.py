@@ -299,15 +299,16 @@ def test_om_aperture_1um_at_65nm_pixels_leaves_the_sub_resolution_rim(tmp_path):
 
 # ----------------------------------------------------------------------------- fixtures/indent_afm_feedback
 
-def _feedback_errors(tmp_path, seed, noise_nm=0.0, table=None, **families):
+def _feedback_errors(tmp_path, seed, noise_nm=0.0, table=None, fmt="gsf", **families):
     """d, depth and area errors (%) and the worst corner (px) of one feedback-renderer map through the flow
-    (``table``: a dict that receives the indents table and the row)."""
+    (``table``: a dict that receives the indents table and the row; ``fmt="ibw"``: trace and retrace, the z
+    loop's lag taken out)."""
     from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
     r = render_feedback(seed, **families)
     if noise_nm:
         z = r.height_nm + np.random.default_rng(seed).normal(0, noise_nm, r.height_nm.shape)
         r = dataclasses.replace(r, height_nm=z.astype(np.float32))
-    gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}")
+    gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}", fmt)
     tab = run_indents([gsf], None, IndentsOptions()).indents
     t = r.truth
     k = int(np.argmin(np.hypot(np.asarray(tab["x_um"]) - t["centre_um"][0], np.asarray(tab["y_um"]) - t["centre_um"][1])))
@@ -342,6 +343,17 @@ def test_feedback_render_pile_up_all_round_keeps_the_maps_level(tmp_path, seed):
     d, depth, area, corner, t = _feedback_errors(tmp_path, seed, **_CLEAN)
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
     assert abs(depth) <= 1.0 and abs(area) <= 1.0 and corner <= 1.5, (depth, area, corner)
+
+
+@pytest.mark.parametrize("seed, before_pct", [(20, 1.02), (47, 0.84), (56, 1.18), (36, 1.08)])
+def test_feedback_render_corners_on_the_surface_beyond_them(tmp_path, seed, before_pct):
+    """Everything drawn, trace and retrace (IBW). Pile-up's tails, the scanner's bow and drifting lines left the
+    map's zero 10-40 nm above the surface at the corners, and the valleys' V, carried to 0, put every corner 1-3 px
+    out: d +0.84 to +1.18 % (session 22, before the corners were taken where each valley meets the surface just
+    beyond it). Now +0.34, +0.01, -0.07, +0.13 %: held to the 0.5 % goal, the corners to 1.5 px."""
+    d, _depth, _area, corner, t = _feedback_errors(tmp_path, seed, fmt="ibw")
+    assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), (d, before_pct)
+    assert corner <= 1.5, corner
 
 
 def test_feedback_render_far_field_in_slivers(tmp_path):
