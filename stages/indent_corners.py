@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from .indent_level import strip_level
+from .indent_level import in_cracks
 
 __all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "surface_beyond", "tongue_mask",
            "unless_crack"]
@@ -32,7 +32,7 @@ def bilinear(img, r, c, order=1, prefilter=True):
                                    prefilter=prefilter)
 
 
-def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.5):
+def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.5, pixels_below_level=False):
     """Distance from ``rc0`` along ``e`` where the valley between two facets meets ``level`` (nm; the surface).
 
     The pixels of the last 9 px before the coarse corner (``length``), within ``V_WIDE_PX`` of the ray and
@@ -43,6 +43,8 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     corner whose edges sink in (a cusp) comes out too shallow (corners 0.3-1 px short at bows of -7 %); but
     where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
     takes in less of the crack.
+    With ``pixels_below_level``, the V's pixels are those below ``level`` where it lies under 0 (the surface beyond
+    the corner: its own pixels would bend the V), else below 0.
     Returns (crossing, the valley's slope in nm per px), or None when the pixels do not carry such a fit or
     the crossing lies more than ``reach`` px from ``length``.
     """
@@ -59,7 +61,7 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     t_all = rel @ np.array([-e[1], e[0]])
     z_all = zr[rr, cc].ravel()
     below = (s_all > length - 9) & (s_all < length + 0.5) & np.isfinite(z_all) \
-        & (z_all < min(level, 0.0) - max(3 * noise, 1.5 * slope_floor))
+        & (z_all < (min(level, 0.0) if pixels_below_level else 0.0) - max(3 * noise, 1.5 * slope_floor))
     # the V over V_WIDE_PX across (a cusp's V, where the edges sink in, is too shallow within 3 px), or over
     # 3 px where a crack runs down the valley (the wider V takes in more of it)
     for half in (V_WIDE_PX, 3.0):
@@ -124,11 +126,11 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
     if length < 4:
         return np.asarray(rc1, float), None
     e = _aim_at_valley(zc, rc0, v / length, length)
-    level = min(surface_beyond(zr, rc0 + length * e, e), 0.0) if local_level else 0.0
+    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if local_level else 0.0
     if level < -BEYOND_MAX_SLOPES * slope_floor:
         level = 0.0                       # no surface: the window reached into a chip, a crack or the valley
     fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
-                           reach=2.5 + abs(level) / max(slope_floor, 1e-9))
+                           reach=2.5 + abs(level) / max(slope_floor, 1e-9), pixels_below_level=True)
     if fit is not None:
         return rc0 + fit[0] * e, fit[1]
     s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
@@ -179,30 +181,31 @@ def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, w
     b = int(np.flatnonzero(steep_then_flat)[np.argmin(msr[steep_then_flat])])
     j, k = int(cand[b]), ks[b]
     # the rise carried on to the surface around the corner
-    level = surface_beyond(zr, pts[j], e, window_px, window_px)
+    level = surface_beyond(zr, pts[j], e, window_px)
     shift = max((level - k[0]) / k[1], 0.0)
     # where the valley's own V (fitted to its pixels, a crack down it left out) reaches that level
     fit = _valley_crossing(zr, pts[j] - 20.0 * e, e, 20.0, slope_floor, noise, level, reach=shift + 3.0)
     return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True
 
 
-def surface_beyond(zr, rc, e, reach_px=12.0, half_px=12.0, sigma=None):
-    """The original surface's level (nm) just beyond a corner at ``rc`` (row, col) on the diagonal ``e``, from the
-    heights 2 to ``reach_px`` px on along ``e`` and ``half_px`` either side of it: their median, or with the noise
-    ``sigma`` the median of those near their upper quartile (:func:`.indent_level.strip_level`: a radial crack down
-    a narrow strip left out); 0 with under 20 such pixels (the map's border)."""
-    lo = np.maximum(np.floor(rc - reach_px - half_px).astype(int), 0)
-    hi = np.minimum(np.ceil(rc + reach_px + half_px).astype(int) + 1, zr.shape)
+def surface_beyond(zr, rc, e, window_px=12.0, sigma=None):
+    """The original surface's level (nm) just beyond a corner at ``rc`` (row, col) on the diagonal ``e``: the median
+    of the heights from 2 to ``window_px`` px on along ``e``, ``window_px`` either side of it (a crack's few pixels
+    and the imprint's corner left out by the median; with the noise ``sigma``, the pixels of a crack, which can fill
+    a quarter of the window, left out first: :func:`.indent_level.in_cracks`); 0 with under 20 such pixels (the
+    map's border)."""
+    lo = np.maximum(np.floor(rc - 2 * window_px).astype(int), 0)
+    hi = np.minimum(np.ceil(rc + 2 * window_px).astype(int) + 1, zr.shape)
     if not np.all(hi > lo):                              # beyond the map's border: no window
         return 0.0
     rr, cc = np.mgrid[lo[0]:hi[0], lo[1]:hi[1]]
     sa = (rr - rc[0]) * e[0] + (cc - rc[1]) * e[1]
     ta = (cc - rc[1]) * e[0] - (rr - rc[0]) * e[1]
-    zz = zr[rr, cc][(sa > 2.0) & (sa < reach_px) & (np.abs(ta) <= half_px)]
-    zz = zz[np.isfinite(zz)]
-    if len(zz) < 20:
-        return 0.0
-    return float(np.median(zz)) if sigma is None else strip_level(zz, sigma)
+    zw = zr[lo[0]:hi[0], lo[1]:hi[1]]
+    use = (sa > 2.0) & (sa < window_px) & (np.abs(ta) < window_px) & np.isfinite(zw)
+    if sigma is not None and use.sum() >= 20:
+        use &= ~in_cracks(zw, sigma)
+    return float(np.median(zw[use])) if use.sum() >= 20 else 0.0
 
 
 def _kink_fits(s, z, window_px):

@@ -15,7 +15,7 @@ from scipy import ndimage
 from .indent_geometry import robust_plane
 from .level import Levelled, _remove_scars, _row_nanmedian, noise_nm, poly_surface
 
-__all__ = ["CornerLevel", "corner_level", "level_single", "strip_level"]
+__all__ = ["CornerLevel", "corner_level", "in_cracks", "level_single", "strip_level"]
 
 TRIM_SPREADS = 3.0          # a round's surface refitted without the far-field pixels this many spreads off it
 RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above which its bow is fitted first
@@ -258,6 +258,13 @@ class CornerLevel:
         return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))
 
 
+def in_cracks(z_nm: np.ndarray, sigma_nm: float) -> np.ndarray:
+    """Pixels of ``z_nm`` (a window of a levelled map, NaN where not measured) in a narrow groove, a radial crack:
+    more than ``CRACK_NOISE`` noise levels and ``CRACK_MIN_NM`` under a grey closing ``CRACK_CLOSING_PX`` wide."""
+    zf = np.where(np.isfinite(z_nm), z_nm, np.nanmedian(z_nm))
+    return ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf > max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)
+
+
 def strip_level(v: np.ndarray, sigma: float) -> float:
     """A strip's level, robust to what is left of a radial crack in it: the median of the pixels within 3 noise
     levels (at least 3 nm) of its upper quartile."""
@@ -313,8 +320,7 @@ def corner_level(z_nm: np.ndarray, corners_px, centres_px, diagonals_px, sigma_n
             if not np.isfinite(zz).any():
                 continue
             band = (t >= CORNER_BAND_FROM_PX) & (t <= reach) & (np.abs(w) <= CORNER_BAND_HALF_PX) & np.isfinite(zz)
-            zf = np.where(np.isfinite(zz), zz, np.nanmedian(zz))
-            band &= ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf <= max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)
+            band &= ~in_cracks(zz, sigma_nm)
             if band.sum() < CORNER_BAND_MIN_PX:
                 continue
             levels.append(strip_level(zz[band], sigma_nm))
