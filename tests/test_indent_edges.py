@@ -12,10 +12,11 @@ CENTRE = np.array([12.0, 12.0])
 BUMP_HALF_LEN_UM, BUMP_OUT_UM = 2.0, 1.0        # a half-ellipse on edge 0: area pi / 2 * 2 * 1 um^2
 
 
-def _diamond(bump: bool, bow: float = 0.0, half_len=BUMP_HALF_LEN_UM, out=BUMP_OUT_UM, chipped=(0,)):
+def _diamond(bump: bool, bow=0.0, half_len=BUMP_HALF_LEN_UM, out=BUMP_OUT_UM, chipped=(0,)):
     """The closed boundary of a diamond of diagonals 2 x HALF_D_UM and its corners in order: every edge bowed out
-    by 4 bow (d/2) t (1 - t) (negative: in), the edges ``chipped`` (edge 0: corner 0 to 1) with a half-ellipse
-    ``half_len`` long each way bulging ``out`` at their middle."""
+    by 4 bow (d/2) t (1 - t) (negative: in; ``bow`` one for all or one per edge), the edges ``chipped`` (edge 0:
+    corner 0 to 1) with a half-ellipse ``half_len`` long each way bulging ``out`` at their middle."""
+    bows = np.broadcast_to(np.asarray(bow, float), (4,))
     corners = CENTRE + HALF_D_UM * np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
     pts = []
     for k in range(4):
@@ -26,7 +27,7 @@ def _diamond(bump: bool, bow: float = 0.0, half_len=BUMP_HALF_LEN_UM, out=BUMP_O
         nrm = nrm if nrm @ ((p0 + p1) / 2 - CENTRE) > 0 else -nrm
         s = np.arange(0.0, ln, 0.02)
         u = (s - ln / 2) / half_len
-        off = 4 * bow * HALF_D_UM * (s / ln) * (1 - s / ln)
+        off = 4 * bows[k] * HALF_D_UM * (s / ln) * (1 - s / ln)
         if bump and k in chipped:
             off = off + out * np.sqrt(np.clip(1 - u * u, 0, 1))
         pts.append(p0 + np.outer(s, e) + np.outer(off, nrm))
@@ -90,18 +91,7 @@ def test_chips_along_half_of_two_edges():
 def test_pile_up_bow_on_two_edges_is_no_chip():
     """Two opposite edges bowed out (pile-up) and two in, over a facet's slope: the out-bowed edges are fitted again
     from the others' bow, but the region between is no shelf, so nothing is taken."""
-    corners = CENTRE + HALF_D_UM * np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
-    pts = []
-    for k in range(4):
-        p0, p1 = corners[k], corners[(k + 1) % 4]
-        ln = np.hypot(*(p1 - p0))
-        e = (p1 - p0) / ln
-        nrm = np.array([e[1], -e[0]])
-        nrm = nrm if nrm @ ((p0 + p1) / 2 - CENTRE) > 0 else -nrm
-        sv = np.arange(0.0, ln, 0.02)
-        bow = 0.08 if k in (0, 2) else -0.04
-        pts.append(p0 + np.outer(sv, e) + np.outer(4 * bow * HALF_D_UM * (sv / ln) * (1 - sv / ln), nrm))
-    c = np.vstack(pts)
+    c, corners = _diamond(bump=False, bow=(0.08, -0.04, 0.08, -0.04))
     got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, _heights(10.0), (0, 0), 10.0)
     assert got.chipped_edges == () and np.array_equal(got.contour_um, c)
 
@@ -110,26 +100,14 @@ def test_chip_on_an_edge_bowed_out_by_pile_up():
     """Edge 0 bowed out by 8 % of d/2 (pile-up) with a short chip on it, the others sunk in by 4 %; the surface
     slopes as a facet does but for the chip's flat floor. The chip is found beside the bowed curve and the bow
     is kept: only the chip's area is taken (within 5 %), not the band between the bow and its neighbours'."""
-    corners = CENTRE + HALF_D_UM * np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]])
-    pts, plain = [], []
-    for k in range(4):
-        p0, p1 = corners[k], corners[(k + 1) % 4]
-        ln = np.hypot(*(p1 - p0))
-        e = (p1 - p0) / ln
-        nrm = np.array([e[1], -e[0]])
-        nrm = nrm if nrm @ ((p0 + p1) / 2 - CENTRE) > 0 else -nrm
-        sv = np.arange(0.0, ln, 0.02)
-        off = 4 * (0.08 if k == 0 else -0.04) * HALF_D_UM * (sv / ln) * (1 - sv / ln)
-        plain.append(p0 + np.outer(sv, e) + np.outer(off, nrm))
-        if k == 0:
-            u = (sv - ln / 2) / BUMP_HALF_LEN_UM
-            off = off + BUMP_OUT_UM * np.sqrt(np.clip(1 - u * u, 0, 1))
-            mid = p0 + e * ln / 2 + nrm * (4 * 0.08 * HALF_D_UM / 4 + 0.5 * BUMP_OUT_UM)
-        pts.append(p0 + np.outer(sv, e) + np.outer(off, nrm))
-    c, whole = np.vstack(pts), np.vstack(plain)
+    bows = (0.08, -0.04, -0.04, -0.04)
+    c, corners = _diamond(bump=True, bow=bows)
+    whole, _ = _diamond(bump=False, bow=bows)
+    # the chip's flat floor round the middle of edge 0 (its outward normal along (1, 1) / sqrt 2 here)
+    mid = (corners[0] + corners[1]) / 2 + np.array([1.0, 1.0]) / np.sqrt(2) * (0.08 * HALF_D_UM + 0.5 * BUMP_OUT_UM)
     z = _heights(10.0)
     rr, cc = np.mgrid[0:240, 0:240]
-    z[np.hypot(rr * PX_UM - mid[1], cc * PX_UM - mid[0]) < BUMP_HALF_LEN_UM + 0.3] = -150.0     # the chip's floor
+    z[np.hypot(rr * PX_UM - mid[1], cc * PX_UM - mid[0]) < BUMP_HALF_LEN_UM + 0.3] = -150.0
     got = edges_past_chips(c, corners, PX_UM, 2 * HALF_D_UM, z, (0, 0), 10.0)
     assert got.chipped_edges == (0,)
     assert got.chipped_area_um2 == pytest.approx(shoelace(c) - shoelace(whole), rel=0.05)
