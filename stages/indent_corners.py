@@ -23,7 +23,7 @@ __all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "reg
 CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
-BEYOND_MAX_SLOPES = 2.0    # the surface beyond a corner lies within this many facet slopes (nm per px) under 0
+BEYOND_MAX_SLOPES = 2.0      # the surface beyond a corner lies within this many facet slopes (nm per px) under 0
 V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
 
 

@@ -15,7 +15,7 @@ from scipy import ndimage
 from .indent_geometry import robust_plane
 from .level import Levelled, _remove_scars, _row_nanmedian, noise_nm, poly_surface
 
-__all__ = ["CornerLevel", "corner_level", "in_cracks", "level_single", "strip_level"]
+__all__ = ["CornerLevel", "corner_level", "in_cracks", "level_single"]
 
 TRIM_SPREADS = 3.0          # a round's surface refitted without the far-field pixels this many spreads off it
 RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above which its bow is fitted first
@@ -265,7 +265,7 @@ def in_cracks(z_nm: np.ndarray, sigma_nm: float) -> np.ndarray:
     return ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf > max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)
 
 
-def strip_level(v: np.ndarray, sigma: float) -> float:
+def _strip_level(v: np.ndarray, sigma: float) -> float:
     """A strip's level, robust to what is left of a radial crack in it: the median of the pixels within 3 noise
     levels (at least 3 nm) of its upper quartile."""
     top = np.percentile(v, 75)
@@ -323,6 +323,6 @@ def corner_level(z_nm: np.ndarray, corners_px, centres_px, diagonals_px, sigma_n
             band &= ~in_cracks(zz, sigma_nm)
             if band.sum() < CORNER_BAND_MIN_PX:
                 continue
-            levels.append(strip_level(zz[band], sigma_nm))
+            levels.append(_strip_level(zz[band], sigma_nm))
             strips[r0:r1, c0:c1] |= band
     return CornerLevel(levels_nm=np.asarray(levels, float), strips=strips)

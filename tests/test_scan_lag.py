@@ -17,6 +17,7 @@ from markcal.stages.image_io import read_image
 from markcal.stages.scan_lag import MIN_CORRELATION, scan_lag, unlag
 
 from realdata import realdata_root
+from test_independent_renders import _corners_um
 
 NID = realdata_root() / "afm" / "nanosurf_nid"
 
@@ -92,12 +93,8 @@ def test_ibw_reader_hands_over_the_other_direction(tmp_path):
 
 
 def _corner_px(tab, k, truth):
-    o = np.radians(tab["orientation_deg"][k])
-    e1, e2 = np.array([np.cos(o), np.sin(o)]), np.array([-np.sin(o), np.cos(o)])
-    c = np.array([tab["x_um"][k], tab["y_um"][k]])
-    h1, h2 = tab["diag1_um"][k] / 2, tab["diag2_um"][k] / 2
-    mc = np.array([c + h1 * e1, c + h2 * e2, c - h1 * e1, c - h2 * e2])
-    tc = np.array(truth["corners_um"])
+    """The worst corner's error (px), best assignment of the table's corners to the truth's."""
+    mc, tc = _corners_um(tab, k), np.array(truth["corners_um"])
     return min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) / truth["pixel_um"]
 
 

@@ -245,7 +245,6 @@ def _scan_lag_px(img: Image, say, name, info) -> float:
     if img.other_direction is None:
         return 0.0
     lag = scan_lag(img.data, img.other_direction)
-    info["scan_lag_correlation"] = lag.correlation
     if not lag.usable:
         say(f"{name}: the channel's two scan directions do not match (slopes' correlation {lag.correlation:.2f}, "
             f"offset {2 * lag.lag_px:+.2f} px): positions keep the z loop's lag")
