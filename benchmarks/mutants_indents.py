@@ -659,14 +659,14 @@ MUTANTS_INDENTS = [
     {   # the corners carried to the map's zero, not to the surface beyond them (session 22)
         "name": "corners-at-zero-not-the-surface-beyond",
         "file": "stages/indent_corners.py",
-        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if local_level else 0.0\n",
+        "old": "    level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0\n",
         "new": "    level = 0.0\n",
         "tests": ["tests/test_indent_corners.py", _FB_BEYOND],
     },
     {   # a surface above the map's zero beyond the corners taken too (a rim round them) (session 22)
         "name": "corners-surface-beyond-above-zero",
         "file": "stages/indent_corners.py",
-        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if local_level else 0.0\n",
+        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if level < 0.0 else 0.0\n",
         "new": "    level = surface_beyond(zr, rc0 + length * e, e, sigma=noise) if local_level else 0.0\n",
         "tests": ["tests/test_indent_corners.py", _SINGLE],
     },

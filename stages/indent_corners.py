@@ -126,7 +126,10 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
     if length < 4:
         return np.asarray(rc1, float), None
     e = _aim_at_valley(zc, rc0, v / length, length)
-    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if local_level else 0.0
+    level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0
+    # only a surface below 0 is taken, then with a crack's pixels left out (which only raises it: the grey closing
+    # is not needed where the plain median lies above 0)
+    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if level < 0.0 else 0.0
     if level < -BEYOND_MAX_SLOPES * slope_floor:
         level = 0.0                       # no surface: the window reached into a chip, a crack or the valley
     fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
