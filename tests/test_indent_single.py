@@ -279,3 +279,32 @@ def test_clipped_floor_only_where_heights_are_equal():
     assert clipped_floor_px(np.round(noisy / 0.2) * 0.2) == 0
     cut = np.maximum(noisy, -760.0)
     assert clipped_floor_px(cut) == int(np.sum(noisy <= -760.0)) >= 8
+
+
+def _pyramid_in_pile_up(n=129, a=56.0, depth=800.0, noise=0.3, seed=0):
+    """A square pyramid (diagonals along the axes, half-diagonal ``a`` px) filling an n x n map (apex on the centre pixel) whose every
+    pixel outside it stands 20 nm up (pile-up), but for a patch in the top-left corner (x + y < 40 px) on the
+    original surface, tilted by 0.075 nm/px along x + y (heights within +-1.5 nm of 0)."""
+    yy, xx = np.mgrid[0:n, 0:n].astype(float)
+    c = (n - 1) / 2
+    r = (np.abs(xx - c) + np.abs(yy - c)) / a
+    z = np.where(r <= 1, -depth * (1 - r), 20.0)
+    patch = xx + yy < 40
+    z[patch] = 0.075 * (xx[patch] + yy[patch] - 20.0)
+    return z + np.random.default_rng(seed).normal(0, noise, (n, n)), c
+
+
+def test_far_field_on_one_side_gives_no_tilt():
+    """The only far field is a patch in one corner of the map (a filled map's far field, or what the pile-up left
+    of it): a plane fitted to it and extrapolated under the imprint put the level 8 nm off at the floor (depth
+    and d +1.0 %; on feedback seed 12 with one noise draw, 170 nm). Far field in fewer than three quadrants about the pit
+    gives the level only: depth within 0.2 % of 800 nm, d within 0.2 % of 2 a."""
+    from markcal.stages.indent_single import _surrounds, measure_single
+    z, c = _pyramid_in_pile_up()
+    m = measure_single(z, 0.1, 0.3, c, c, 56.0)
+    assert m.depth_nm == pytest.approx(800.0, rel=0.002)
+    assert m.d_um == pytest.approx(2 * 56.0 * 0.1, rel=0.002)
+    rows, cols = np.nonzero(np.add.outer(np.arange(129), np.arange(129)) < 40)
+    assert not _surrounds(rows, cols, c, c)
+    ring = np.hypot(*np.mgrid[0:129, 0:129] - c) > 60
+    assert _surrounds(*np.nonzero(ring), c, c)
