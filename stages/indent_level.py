@@ -106,7 +106,10 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bo
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)                # rows without neighbours
             nb = np.nanmedian(np.stack([padded[3 + k:3 + k + ny] for k in (-3, -2, -1, 1, 2, 3)]), axis=0)
-        at_nb = ((np.abs(za - nb[:, None]) <= tol) & use).sum(axis=1)
+        # two levels: pixels at the neighbours' level that are not at the row's own (a row only a little off its
+        # neighbours is the lines' own jitter, 0.5-5 nm on the feedback renderer, its pixels at its own level; counted
+        # within tol of the neighbours' alone, 0.05 nm more noise had moved its offset to theirs, 5-15 nm, on most seeds)
+        at_nb = ((np.abs(za - nb[:, None]) <= tol) & (np.abs(za - off[:, None]) > tol) & use).sum(axis=1)
         split = (np.abs(off - nb) > tol) & (at_nb >= np.maximum(0.15 * cnt, 8))
         off[split] = np.nan
         good = np.isfinite(off)
