@@ -26,6 +26,8 @@ _LAG = "tests/test_scan_lag.py"
 _FB_BEYOND = "tests/test_independent_renders.py::test_feedback_render_corners_on_the_surface_beyond_them"
 _FB_LONG = "tests/test_independent_renders.py::test_feedback_render_chips_along_much_of_an_edge"
 _FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
+_WHISPER = "tests/test_independent_renders.py::test_feedback_render_a_whisper_of_noise_moves_nothing"
+_ROWS = "tests/test_indent_level_rows.py"
 
 MUTANTS_INDENTS = [
     {   # a blurred corner as the sum over wedges (half the contrast at its tip): corners pulled in
@@ -370,7 +372,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "    theta = _diagonal_angle(zs, pit, depth, nc)\n",
         "new": "    theta = None\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner", _FB_CRACKS],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner", _FB_CRACKS, _WHISPER],
     },
     {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
         "name": "select-pits-not-pyramids",
@@ -683,5 +685,40 @@ MUTANTS_INDENTS = [
         "old": "    if level < -BEYOND_MAX_SLOPES * slope_floor:\n",
         "new": "    if False:\n",
         "tests": [_FB_BEYOND, "tests/test_independent_renders.py::test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whole"],
+    },
+    {   # the window's plane through a far field on one side of the pit, tilt and all (session 23)
+        "name": "single-plane-from-one-side",
+        "file": "stages/indent_single.py",
+        "old": "        if not _surrounds(rr[far], cc[far], rr[pit].mean(), cc[pit].mean()):\n",
+        "new": "        if False:\n",
+        "tests": [_SINGLE + "::test_far_field_on_one_side_gives_no_tilt", _WHISPER],
+    },
+    {   # quadrants counted with a single pixel each (session 23)
+        "name": "single-surround-any-pixel",
+        "file": "stages/indent_single.py",
+        "old": "    return int(np.sum(np.bincount(q, minlength=4) >= SURROUND_MIN_PX)) >= 3\n",
+        "new": "    return int(np.sum(np.bincount(q, minlength=4) >= 1)) >= 3\n",
+        "tests": [_SINGLE + "::test_far_field_on_one_side_gives_no_tilt", _WHISPER],
+    },
+    {   # the facet slope from the whole pit at the noise threshold again (session 23)
+        "name": "single-slope-from-whole-pit",
+        "file": "stages/indent_single.py",
+        "old": "    slope_px = 0.5 * depth / max(np.sqrt((len(core) if core is not None else pit.sum() / 4.0) / 2.0), 1.0)\n",
+        "new": "    slope_px = depth / max(np.sqrt(pit.sum() / 2.0), 1.0)\n",
+        "tests": [_WHISPER],
+    },
+    {   # a line's pixels within tol of its neighbours' level counted, its own level's too (session 23)
+        "name": "level-split-counts-own-level",
+        "file": "stages/indent_level.py",
+        "old": "        at_nb = ((np.abs(za - nb[:, None]) <= tol) & (np.abs(za - off[:, None]) > tol) & use).sum(axis=1)\n",
+        "new": "        at_nb = ((np.abs(za - nb[:, None]) <= tol) & use).sum(axis=1)\n",
+        "tests": [_ROWS, _WHISPER],
+    },
+    {   # no line ever split: a scar over most of a line sets its offset (session 23)
+        "name": "level-split-never",
+        "file": "stages/indent_level.py",
+        "old": "        split = (np.abs(off - nb) > tol) & (at_nb >= np.maximum(0.15 * cnt, 8))\n",
+        "new": "        split = np.zeros(ny, bool)\n",
+        "tests": [_ROWS],
     },
 ]

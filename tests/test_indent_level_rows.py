@@ -46,3 +46,21 @@ def test_a_scar_over_most_of_a_line_takes_the_neighbours_offset():
     free = np.r_[0:20, 97:N]
     assert abs(np.median(lv.z_nm[60, free] - off[60]) - level) <= 0.5
     assert abs(np.median(lv.z_nm[60, 20:97] - off[60]) - level) <= 1.5
+
+
+def test_a_scar_over_most_of_a_line_through_the_floor_leaves_the_floor():
+    """A cone 300 nm deep (radius 30 px) and the line through its apex scarred 25 nm deep over 70 % of its far
+    field (columns 0-33 and 95-110 of 0-33 and 95-127). Its median would follow the scar and lift the rest of the
+    line, the floor with it, by 25 nm (and a scar patch then takes the floor from the lines above and below). As
+    a line of two levels it takes its neighbours' offset: the floor within 1.5 nm of 300 nm, the line's
+    scar-free far field within 0.5 nm of the surface."""
+    z, off = _jittered(seed=7, jitter_nm=0.5)
+    rr, cc = np.mgrid[0:N, 0:N].astype(float)
+    r = np.hypot(rr - 64, cc - 64)
+    cone = np.where(r < 30, -300.0 * (1 - r / 30), 0.0)
+    z = z + cone
+    z[64, np.r_[0:34, 95:111]] -= 25.0
+    lv = level_single(z, 0.1)
+    level = np.median((lv.z_nm - off[:, None])[r > 40])
+    assert abs((lv.z_nm[64, 64] - off[64] - level) - (-300.0)) <= 1.5
+    assert abs(np.median(lv.z_nm[64, 111:] - off[64]) - level) <= 0.5

@@ -306,5 +306,8 @@ def test_far_field_on_one_side_gives_no_tilt():
     assert m.d_um == pytest.approx(2 * 56.0 * 0.1, rel=0.002)
     rows, cols = np.nonzero(np.add.outer(np.arange(129), np.arange(129)) < 40)
     assert not _surrounds(rows, cols, c, c)
+    # a few stray pixels (5) in each other quadrant pin no tilt either
+    stray = np.array([[r, q] for r, q in ((120, 5), (5, 120), (120, 120)) for _ in range(5)])
+    assert not _surrounds(np.r_[rows, stray[:, 0]], np.r_[cols, stray[:, 1]], c, c)
     ring = np.hypot(*np.mgrid[0:129, 0:129] - c) > 60
     assert _surrounds(*np.nonzero(ring), c, c)
