@@ -383,6 +383,14 @@ EQUIVALENT = {
                                        "search across, so where the trace starts matters little: feedback seeds "
                                        "1-60 d within 0.1 points (max |d| 2.00 % either way), ruled wide-crack "
                                        "seeds 1-12 within 0.01 points, the clipped-floor test passes",
+    "corners-v-wide-in-cracks": "not equivalent in the strict sense, but without measurable effect since the facet "
+                                "slope comes from the region below half the depth (session 23): on the ruled "
+                                "renderer with wide cracks (seeds 1-12) 9 seeds identical, seeds 1, 5, 10, 11 and "
+                                "12 within 0.07 points of d, every goal met either way",
+    "level-always-quadratic": "not equivalent in the strict sense, but without a clear effect since session 23's "
+                              "line offsets: over feedback seeds 1-60 (IBW) area within 1 % 73 -> 72 %, seeds "
+                              "moving both ways (38: +1.57 -> +0.31 %; 29: -0.36 -> +0.78 %, 34: -0.33 -> +0.94 %), "
+                              "d and corners within goal the same",
     "single-corner-sector-quadrant": "not equivalent in the strict sense, but without measurable effect since the "
                                      "facet slope comes from the region below half the depth (session 23): over "
                                      "feedback seeds 1-60 (IBW) 57 identical, seed 10's worst corner 0.66 -> 0.89 px, "

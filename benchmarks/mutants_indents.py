@@ -278,7 +278,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "        for c in find_contours(ring, level):\n",
         "new": "        for c in []:\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn"],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
+                  "tests/test_independent_renders.py::test_boundary_in_pieces_closed_along_the_border"],
     },
     {   # lines with little far field not counted: a flatten undone on guesswork said nothing (session 16)
         "name": "unflatten-short-lines-uncounted",
@@ -356,7 +357,7 @@ MUTANTS_INDENTS = [
         "old": "            keep = valid & ring if it == 0 else prev\n",
         "new": "            keep = valid & ring\n",
         "tests": ["tests/test_independent_renders.py::test_feedback_render_noise_free_and_far_field_in_corners",
-                  _CORNER_LEVEL],
+                  _CORNER_LEVEL, "tests/test_independent_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
     },
     {   # a quadratic whatever the far field's spread (session 13)
         "name": "level-always-quadratic",
@@ -481,7 +482,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_corners.py",
         "old": "    if np.hypot(*(kink - corner)) > CRACK_TONGUE_PX:\n",
         "new": "    if False:\n",
-        "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them"],
+        "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
+                  _FB_CHIPS],
     },
     {   # Kaufman's Jacobian alone: the reweighted gradient off by what it leaves out (session 18)
         "name": "micrograph-gradient-left-out-dropped",
@@ -558,7 +560,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "def _trimmed_surface(z, keep, degree, sigma, n_trim=3):\n",
         "new": "def _trimmed_surface(z, keep, degree, sigma, n_trim=0):\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails", _FB_19],
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails", _FB_19,
+                  "tests/test_independent_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
     },
     {   # never levelled to the surface beyond the corners (session 21)
         "name": "level-corners-never",
@@ -577,7 +580,7 @@ MUTANTS_INDENTS = [
     {   # the strips' level with the radial cracks in them (session 21)
         "name": "level-corner-strips-with-cracks",
         "file": "stages/indent_level.py",
-        "old": "            band &= ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf <= max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)\n",
+        "old": "            band &= ~in_cracks(zz, sigma_nm)\n",
         "new": "",
         "tests": [_CORNER_LEVEL],
     },
@@ -593,7 +596,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "        degree = _bow_degree(keep) if fit_bow else min(_bow_degree(keep), 1)\n",
         "new": "        degree = _bow_degree(keep)\n",
-        "tests": [_CORNER_LEVEL],
+        "tests": [_CORNER_LEVEL, "tests/test_independent_renders.py::test_feedback_render_levelled_to_the_corners_with_planes_only"],
     },
     {   # an imprint open only through a chip that ran to the border flagged cut, without an area (session 21)
         "name": "single-cut-through-chip",

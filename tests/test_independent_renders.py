@@ -425,6 +425,16 @@ def test_feedback_render_far_field_under_pile_up_tails(tmp_path):
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
 
 
+@pytest.mark.parametrize("seed", [17, 57])
+def test_feedback_render_levelled_to_the_corners_with_planes_only(tmp_path, seed):
+    """Seeds 17 and 57, everything drawn, trace and retrace (90 and 87 % fill): the surface beyond the corners lies
+    17-29 nm under the far field's level, and the map is levelled to it with planes only. A quadratic kept in that
+    levelling bends under the imprint through the tails: area -1.10 and -1.17 % (measured +0.10 and -0.22 %
+    without). Held to the area goal, 1 %."""
+    _d, _depth, area, _corner, _t = _feedback_errors(tmp_path, seed, fmt="ibw")
+    assert abs(area) <= 1.0, area
+
+
 def test_feedback_render_far_field_levelled_where_the_corners_do_not_decide(tmp_path):
     """Seed 19, everything drawn (78 % fill): the surface beyond its corners lies within 3 nm of the far
     field's level, so the far field's own surface stands (plane + quadratic, trimmed): d +0.44 %. A quadratic
@@ -477,6 +487,24 @@ def test_feedback_render_facet_wiggle_is_no_chip(tmp_path):
     _d, _depth, area, _corner, _t = _feedback_errors(tmp_path, 9, table=got, chipping=False)
     assert got["tab"]["chipped_area_um2"][got["k"]] == 0.0
     assert abs(area) <= 2.5, area
+
+
+def test_boundary_in_pieces_closed_along_the_border(tmp_path):
+    """Unseen feedback seed 153, everything drawn, trace and retrace (89 % fill): no one level contour goes round
+    the floor (the border cuts it into pieces), so the boundary is closed along the map's border. Without that:
+    `no imprint found`. Measured whole: d within the rendered-imprint goal (-0.35 %)."""
+    d, _depth, _area, _corner, t = _feedback_errors(tmp_path, 153, fmt="ibw")
+    assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
+
+
+@pytest.mark.parametrize("seed", [31, 34])
+def test_feedback_render_far_field_rounds_trimmed_and_kept(tmp_path, seed):
+    """Seeds 31 and 34, everything drawn, trace and retrace: the far field's surface is refitted each round
+    without the pixels far off it, and a round that would mask nearly all keeps the last round's far field. Area
+    -0.03 and -0.33 %; untrimmed, seed 31 reads -1.80 %, and falling back to the border ring, seed 34 +1.10 %.
+    Held to the area goal, 1 %."""
+    _d, _depth, area, _corner, _t = _feedback_errors(tmp_path, seed, fmt="ibw")
+    assert abs(area) <= 1.0, area
 
 
 def test_cracks_from_three_corners_to_the_border_are_measured_whole(tmp_path):
