@@ -652,7 +652,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_edges.py",
         "old": "        if ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
         "new": "        if not runs and ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
-        "tests": ["tests/test_indent_edges.py", _FB_LONG],
+        "tests": ["tests/test_indent_edges.py", _FB_LONG,
+                  "tests/test_independent_renders.py::test_feedback_render_small_chip_beside_a_long_one"],
     },
     {   # the imprint's own plane through what stood outside it where no surface is left but pile-up (session 22)
         "name": "single-far-field-on-pile-up",
