@@ -22,7 +22,8 @@ import time
 
 import numpy as np
 
-from markcal.fixtures.indent_afm_feedback import border_plane_depth_nm, render_feedback, write_feedback
+from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+from markcal.fixtures.indent_maps import border_plane_depth_nm
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.errors import MarkcalError
 

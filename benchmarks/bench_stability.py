@@ -15,13 +15,13 @@ number of seeds whose spread exceeds half of each goal (d 0.25 %, area 0.5 %, co
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 import tempfile
 
 import numpy as np
 
 from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+from markcal.fixtures.indent_maps import with_more_noise
 from markcal.fixtures.indent_single_ruled import render_single_ruled, write_single_ruled
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.errors import MarkcalError
@@ -73,10 +73,7 @@ def main(argv=None):
                 r = render_feedback(s, 256)
             rows = [measure(r, tmp, f"s{s}", a.format)]
             for k in range(a.draws):
-                n = np.random.default_rng(1000 + k).normal(0.0, a.noise_nm, r.height_nm.shape).astype(np.float32)
-                both = {"retrace_nm": r.retrace_nm + n} if a.renderer == "feedback" else {}
-                rows.append(measure(dataclasses.replace(r, height_nm=r.height_nm + n, **both), tmp, f"s{s}_{k}",
-                                    a.format))
+                rows.append(measure(with_more_noise(r, k, a.noise_nm), tmp, f"s{s}_{k}", a.format))
             o = np.array(rows)
             sp = np.nanmax(o, axis=0) - np.nanmin(o, axis=0) if np.isfinite(o).any() else np.full(len(KEYS), np.nan)
             spreads.append(sp)

@@ -310,8 +310,8 @@ def _feedback_errors(tmp_path, seed, noise_nm=0.0, table=None, fmt="gsf", draw=N
         z = r.height_nm + np.random.default_rng(seed).normal(0, noise_nm, r.height_nm.shape)
         r = dataclasses.replace(r, height_nm=z.astype(np.float32))
     if draw is not None:
-        n = np.random.default_rng(1000 + draw).normal(0.0, 0.05, r.height_nm.shape).astype(np.float32)
-        r = dataclasses.replace(r, height_nm=r.height_nm + n, retrace_nm=r.retrace_nm + n)
+        from markcal.fixtures.indent_maps import with_more_noise
+        r = with_more_noise(r, draw)
     gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}", fmt)
     tab = run_indents([gsf], None, IndentsOptions()).indents
     t = r.truth
@@ -580,7 +580,8 @@ def test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whol
     lag, up to 2 px, moves the whole trace; measured 1.1 px). Depth: the z loop parachutes into this pit, and
     the map's floor lies 10 % short of the truth's; against the real-map goal, a border-plane reading of the
     map (:func:`border_plane_depth_nm`), within 10 % (measured −1.2 %)."""
-    from markcal.fixtures.indent_afm_feedback import border_plane_depth_nm, render_feedback, write_feedback
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    from markcal.fixtures.indent_maps import border_plane_depth_nm
     r = render_feedback(14)
     gsf, _ = write_feedback(r, str(tmp_path), "fb14")
     res = run_indents([gsf], None, IndentsOptions())
