@@ -383,6 +383,13 @@ MUTANTS_INDENTS = [
         "new": "",
         "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
     },
+    {   # the corner's coarse point the far point along the diagonal again, off-diagonal points not marked down (session 25)
+        "name": "single-corner-far-point-only",
+        "file": "stages/indent_single.py",
+        "old": "        score = along - OFF_DIAGONAL_COST * np.maximum(off - OFF_DIAGONAL_FREE * np.abs(along), 0.0)\n",
+        "new": "        score = along\n",
+        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_off_the_diagonal_is_no_corner"],
+    },
     {   # the corner's sector the whole quadrant again: a chip's tip 25 deg off the diagonal (session 13)
         "name": "single-corner-sector-quadrant",
         "file": "stages/indent_single.py",
