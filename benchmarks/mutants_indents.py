@@ -383,6 +383,14 @@ MUTANTS_INDENTS = [
         "new": "",
         "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
     },
+    {   # the level beyond the corners a yes or no at its threshold again (session 25)
+        "name": "level-corners-weight-step",
+        "file": "stages/indent_level.py",
+        "old": "        return float(np.clip((-self.offset_nm / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))\n",
+        "new": "        return float(-self.offset_nm > threshold)\n",
+        "tests": ["tests/test_indent_corner_level.py::test_level_beyond_the_corners_taken_in_part_near_its_threshold",
+                  "tests/test_independent_renders.py::test_feedback_render_level_beyond_corners_without_a_cliff"],
+    },
     {   # the corner's coarse point the far point along the diagonal again, off-diagonal points not marked down (session 25)
         "name": "single-corner-far-point-only",
         "file": "stages/indent_single.py",
@@ -573,15 +581,15 @@ MUTANTS_INDENTS = [
     {   # never levelled to the surface beyond the corners (session 21)
         "name": "level-corners-never",
         "file": "stages/indent_level.py",
-        "old": "        return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
-        "new": "        return False\n",
+        "old": "        return float(np.clip((-self.offset_nm / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))\n",
+        "new": "        return 0.0\n",
         "tests": [_CORNER_LEVEL],
     },
     {   # levelled to the strips above the far field too (session 21)
         "name": "level-corners-any-sign",
         "file": "stages/indent_level.py",
-        "old": "        return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
-        "new": "        return bool(abs(self.offset_nm) > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))\n",
+        "old": "        return float(np.clip((-self.offset_nm / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))\n",
+        "new": "        return float(np.clip((abs(self.offset_nm) / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))\n",
         "tests": [_CORNER_LEVEL],
     },
     {   # the strips' level with the radial cracks in them (session 21)

@@ -221,6 +221,7 @@ CORNER_BAND_TO_D = 0.2      # ... and ends this far beyond it (of the mean diago
 CORNER_BAND_MIN_PX = 10     # pixels a strip needs to count
 CORNER_MIN_NM = 3.0         # ... lying this far (nm) under the map's zero at least
 CORNER_MIN_STRIPS = 2       # strips needed to level to them
+CORNER_RAMP = 0.3           # levelled in part from (1 - this) to (1 + this) times the threshold, in full beyond
 CRACK_CLOSING_PX = 9       # a grey closing this wide fills a radial crack (2-4 px, smeared to 6 by the scan) ...
 CRACK_NOISE = 4.0           # ... whose pixels lie more than this many noise levels ...
 CRACK_MIN_NM = 5.0          # ... and this far (nm) under it
@@ -254,11 +255,19 @@ class CornerLevel:
         (what is left of cracks, the z loop's lag), and levelling to them costs the far field's line
         offsets: on feedback-renderer seeds drawn without the z loop, a 1-3 nm threshold levelled maps whose
         zero was right (seed 21: d +0.27 -> -1.10 %)."""
+        return self.weight(noise_nm) >= 0.5
+
+    def weight(self, noise_nm: float) -> float:
+        """How far to level to the strips, 0-1: 0 where they lie less than ``1 - CORNER_RAMP`` times the threshold of
+        :meth:`below_far_field` under the map's zero, 1 beyond ``1 + CORNER_RAMP`` times it, linear between. A yes or
+        no at the threshold moved one map's area by 4.8 % and its depth by 2.4 % between draws of a whisper of noise
+        (unseen feedback seed 79: two strips, -12 and -35 nm, their mean 0.98-1.02 times the threshold)."""
         m = len(self.levels_nm)
         if m < CORNER_MIN_STRIPS:
-            return False
+            return 0.0
         spread = 1.4826 * float(np.median(np.abs(self.levels_nm - self.offset_nm)))
-        return bool(-self.offset_nm > max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m)))
+        threshold = max(2.0 * noise_nm, CORNER_MIN_NM, 2.0 * spread / np.sqrt(m))
+        return float(np.clip((-self.offset_nm / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))
 
 
 def in_cracks(z_nm: np.ndarray, sigma_nm: float) -> np.ndarray:

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
-from markcal.stages.indent_level import corner_level, level_single
+from markcal.stages.indent_level import CornerLevel, corner_level, level_single
 
 N = 200
 CENTRE = np.array([100.0, 100.0])
@@ -69,6 +69,24 @@ def test_levelled_to_the_strips_only_when_they_lie_clearly_below(levels, below):
         z[(along > 0) & (np.abs(across) <= 6)] = v
     lev = corner_level(z, [corners[:len(levels)]], [CENTRE], [2 * HALF_DIAG], 0.5)
     assert lev.below_far_field(0.5) is below
+
+
+def test_level_beyond_the_corners_taken_in_part_near_its_threshold():
+    """Two strips at -12 and -35 nm (unseen feedback seed 79) lie under the map's zero by 0.98-1.02 times the
+    threshold (2 x their standard error, 24.7 nm): levelled part way (0.43), and a nanometre more or less moves the weight a
+    little, not from nothing to everything. Clearly below: in full; under 0.7 times the threshold: not at all."""
+    def w(*levels):
+        return CornerLevel(levels_nm=np.array(levels, float), strips=np.zeros((2, 2), bool)).weight(0.6)
+    assert 0.3 <= w(-12.0, -35.7) <= 0.7
+    assert 0.0 < w(-13.0, -35.7) - w(-12.0, -35.7) <= 0.15
+    assert w(-30.0, -34.0) == 1.0                       # 32 nm under, the threshold 5.9 nm
+    assert w(-2.0, -30.0) == 0.0                        # 16 nm under, the threshold 41.5 nm
+    assert w(-30.0) == 0.0                              # one strip
+    # the ramp: linear from 0.7 to 1.3 times the threshold
+    thr = 2.0 * 1.4826 * 10.0 / np.sqrt(2.0)            # strips 20 nm apart
+    for frac, expect in ((0.7, 0.0), (1.0, 0.5), (1.15, 0.75), (1.3, 1.0)):
+        mean = -frac * thr
+        assert abs(w(mean + 10.0, mean - 10.0) - expect) <= 1e-9, frac
 
 
 def test_levelled_with_planes_to_the_strips_leaves_the_tails_out():

@@ -506,12 +506,13 @@ def test_boundary_in_pieces_closed_along_the_border(tmp_path):
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
 
 
-@pytest.mark.parametrize("seed", [31, 34])
+@pytest.mark.parametrize("seed", [31, 34, 20])
 def test_feedback_render_far_field_rounds_trimmed_and_kept(tmp_path, seed):
-    """Seeds 31 and 34, everything drawn, trace and retrace: the far field's surface is refitted each round
+    """Seeds 31, 34 and 20, everything drawn, trace and retrace: the far field's surface is refitted each round
     without the pixels far off it, and a round that would mask nearly all keeps the last round's far field. Area
-    -0.03 and -0.33 %; untrimmed, seed 31 reads -1.80 %, and falling back to the border ring, seed 34 +1.10 %.
-    Held to the area goal, 1 %."""
+    -0.03, +0.81 and +0.21 %; untrimmed, seed 31 reads -1.80 %. Falling back to the border ring, seed 34 read
+    +1.10 % before the level beyond the corners was taken in part (session 25; now +0.87 %), and seed 20's boundary
+    is cut (no area). Held to the area goal, 1 %."""
     _d, _depth, area, _corner, _t = _feedback_errors(tmp_path, seed, fmt="ibw")
     assert abs(area) <= 1.0, area
 
@@ -705,3 +706,16 @@ def test_feedback_render_chip_off_the_diagonal_is_no_corner(tmp_path, seed, draw
     d, _depth, _area, corner, t = _feedback_errors(tmp_path, seed, fmt="ibw", draw=draw)
     assert abs(d) <= max(0.5, 100 * t["pixel_um"] / t["d_um"]), d
     assert corner <= corner_tol_px, corner
+
+
+def test_feedback_render_level_beyond_corners_without_a_cliff(tmp_path):
+    """Unseen seed 79 (trace and retrace), as rendered and on noise draw 0: two strips beyond the corners lie under
+    the far field by about the threshold. A yes or no there gave area +3.81 % on one and -1.01 % on the other (depth
+    +0.61 and -1.74 %); levelled in part, +1.42 and +1.02 % (depth -0.50 and -0.69 %). Held: the two within 0.6 %
+    of each other in area and 0.5 % in depth, d within the goal on both."""
+    got = [_feedback_errors(tmp_path, 79, fmt="ibw", draw=draw) for draw in (None, 0)]
+    (d0, depth0, area0, _c0, t), (d1, depth1, area1, _c1, _t) = got
+    d_goal = max(0.5, 100 * t["pixel_um"] / t["d_um"])
+    assert abs(d0) <= d_goal and abs(d1) <= d_goal, (d0, d1)
+    assert abs(area0 - area1) <= 0.6, (area0, area1)
+    assert abs(depth0 - depth1) <= 0.5, (depth0, depth1)

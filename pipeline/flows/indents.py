@@ -226,16 +226,20 @@ def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     corners, centres = [m.corners_um / px for m in found], [(m.x_um / px, m.y_um / px) for m in found]
     diagonals = [m.d_um / px for m in found]
     lev = corner_level(lv.z_nm, corners, centres, diagonals, lv.noise_nm)
+    w = lev.weight(lv.noise_nm)
     info["corner_level_nm"] = lev.offset_nm
-    info["levelled_to_corners"] = lev.below_far_field(lv.noise_nm)
-    if not info["levelled_to_corners"]:
+    info["levelled_to_corners"] = w > 0
+    info["corner_level_weight"] = w
+    if w == 0:
         return lv, _afm_imprints(lv, px)
     say(f"{name}: the surface beyond the corners lies {lev.offset_nm:+.1f} nm under the far field's level "
-        "(pile-up's tails): levelled to it")
-    # planes only (a bow through the tails bends under the imprint), then the strips' level taken as zero
+        "(pile-up's tails): levelled to it" + ("" if w == 1 else f" by {w:.0%} (the strips scatter nearly as much)"))
+    # planes only (a bow through the tails bends under the imprint), then the strips' level taken as zero; where
+    # the strips tell it less clearly, part way between that and the far field's level
+    lv_far = lv
     lv = level_single(heights, px, fit_bow=False)
     lev = corner_level(lv.z_nm, corners, centres, diagonals, lv.noise_nm)
-    lv = dataclasses.replace(lv, z_nm=lv.z_nm - lev.offset_nm)
+    lv = dataclasses.replace(lv, z_nm=w * (lv.z_nm - lev.offset_nm) + (1.0 - w) * lv_far.z_nm)
     return lv, _afm_imprints(lv, px)
 
 
@@ -492,6 +496,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "n_files_flatten_uncertain": int(sum(bool(f.info.get("line_flatten_uncertain")) for f in files)),
         "n_files_levelled_to_corners": int(sum(bool(f.info.get("levelled_to_corners")) for f in files)),
         "corner_level_nm": files[0].info.get("corner_level_nm") if files[0].info.get("levelled_to_corners") else None,
+        "corner_level_weight": files[0].info.get("corner_level_weight") if files[0].info.get("levelled_to_corners") else None,
         "n_files_lag_removed": int(sum(f.info.get("scan_lag_px") is not None for f in files)),
         "scan_lag_px": files[0].info.get("scan_lag_px"),
         "mean_d_um": float(np.mean(t["d_um"])),
