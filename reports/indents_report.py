@@ -222,7 +222,9 @@ def indents_report_html(res) -> str:
             ("non-square pixels resampled", esc(s["resampled"]) if s.get("resampled", "none") != "none" else ""),
             ("levelled to the surface beyond the corners (pile-up's tails under the far field)",
              (f'{s["n_files_levelled_to_corners"]} file(s)' + (f', the far field {num(-s["corner_level_nm"], "nm")} '
-                                                               "above it" if s.get("corner_level_nm") is not None else ""))
+                                                               "above it" if s.get("corner_level_nm") is not None else "")
+              + (f', levelled {100 * s["corner_level_weight"]:.0f} % of the way (the strips scatter nearly as much)'
+                 if s.get("corner_level_weight") is not None and s["corner_level_weight"] < 1 else ""))
              if s.get("n_files_levelled_to_corners") else ""),
             ("floor clipped (the scanner's Z range): depths are lower bounds",
              f'{s["n_files_floor_clipped"]} file(s)' if s.get("n_files_floor_clipped") else ""),

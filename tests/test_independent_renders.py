@@ -719,3 +719,15 @@ def test_feedback_render_level_beyond_corners_without_a_cliff(tmp_path):
     assert abs(d0) <= d_goal and abs(d1) <= d_goal, (d0, d1)
     assert abs(area0 - area1) <= 0.6, (area0, area1)
     assert abs(depth0 - depth1) <= 0.5, (depth0, depth1)
+
+
+def test_report_says_a_map_was_levelled_part_way(tmp_path):
+    """Unseen seed 79 as rendered: its strips lie near the threshold, the map is levelled part way (weight
+    0.43). summary.json gives the weight and the report says how far."""
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    from markcal.reports.indents_report import indents_report_html
+    path, _ = write_feedback(render_feedback(79), str(tmp_path), "fb79", "ibw")
+    res = run_indents([path], None, IndentsOptions())
+    w = res.summary["corner_level_weight"]
+    assert 0.3 <= w <= 0.7, w
+    assert f"levelled {100 * w:.0f} % of the way" in indents_report_html(res)
