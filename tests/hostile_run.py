@@ -146,8 +146,9 @@ ALLOWED_EMPTY = (
      "without an array spec (no verdict on an inferred nominal)"),
     (r"^summary\.(csv|json)$", r"^(optics_resolution_um|n_near_resolution|optics_from|held_rim|held_rim_w|held_crease)$",
      "docs/indents.md summary.json: null for AFM maps and single-imprint micrographs (no fitted PSF)"),
-    (r"^summary\.(csv|json)$", r"^corner_level_nm$",
-     "docs/indents.md summary.json: corner_level_nm null when the map was not levelled to the surface beyond the corners"),
+    (r"^summary\.(csv|json)$", r"^(corner_level_nm|corner_level_weight)$",
+     "docs/indents.md summary.json: corner_level_nm and corner_level_weight null when the map was not levelled to the "
+     "surface beyond the corners"),
     (r"^summary\.(csv|json)$", r"^scan_lag_px$",
      "docs/indents.md summary.json: scan_lag_px null without the other scan direction, or where the two did not match"),
     (r"^(summary\.(csv|json)|metrics\.csv|moves\.csv)$", r"^(settling_time_s|rise_time_s)$",
