@@ -195,9 +195,10 @@ MUTANTS_INDENTS = [
     {   # a clipped floor taken for a flat-bottomed pit (a grating's): the imprint refused (session 15)
         "name": "select-clipped-floor-refused",
         "file": "stages/indent_select.py",
-        "old": "                                          or (m.floor_share > MAX_FLOOR_SHARE and not floor_clipped)\n",
-        "new": "                                          or m.floor_share > MAX_FLOOR_SHARE\n",
-        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range"],
+        "old": "                                          or (_flat_bottomed(m) and not floor_clipped)\n",
+        "new": "                                          or _flat_bottomed(m)\n",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_by_the_z_range",
+                  "tests/test_independent_renders.py::test_floor_clipped_deep_still_measured"],
     },
     {   # any map's lowest pixel taken for a clipped floor (session 15)
         "name": "select-clipped-floor-any-minimum",
@@ -378,10 +379,17 @@ MUTANTS_INDENTS = [
     {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
         "name": "select-pits-not-pyramids",
         "file": "stages/indent_select.py",
-        "old": ("                                          or (m.floor_share > MAX_FLOOR_SHARE and not floor_clipped)\n"
+        "old": ("                                          or (_flat_bottomed(m) and not floor_clipped)\n"
                 "                                          or _no_pyramid(m, pixel_um)\n"),
         "new": "",
         "tests": ["tests/test_afm_readers.py::test_real_maps_keep_every_line_and_hold_no_imprint"],
+    },
+    {   # a flat-bottomed pit by its deepest fifth alone again: a mean of trace and retrace refused (session 25)
+        "name": "select-flat-bottom-deepest-fifth-only",
+        "file": "stages/indent_select.py",
+        "old": "    return bool(m.floor_share > MAX_FLOOR_SHARE and not m.half_share <= MAX_PYRAMID_HALF_SHARE)\n",
+        "new": "    return bool(m.floor_share > MAX_FLOOR_SHARE)\n",
+        "tests": ["tests/test_independent_renders.py::test_mean_of_trace_and_retrace_is_still_a_pyramid"],
     },
     {   # the level beyond the corners a yes or no at its threshold again (session 25)
         "name": "level-corners-weight-step",

@@ -78,6 +78,7 @@ class Imprint:
     contour_um: np.ndarray | None = None    # contact boundary (m, 2)
     floor_um: tuple | None = None           # (x, y) of the floor
     floor_share: float = float("nan")       # share of the pit deeper than 80 % of its depth (AFM)
+    half_share: float = float("nan")        # share of the pit deeper than half its depth (AFM)
     chipped_area_um2: float = float("nan")  # AFM: chips beside the edges, left out of area_um2
     chips_um: tuple = ()                    # AFM: their outlines (m, 2) each, for the report
 

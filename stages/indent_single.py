@@ -81,6 +81,7 @@ class SingleImprint:
     contour_um: np.ndarray = field(repr=False)
     n_pixels: int = 0
     floor_share: float = float("nan")    # share of the pit deeper than 80 % of its depth
+    half_share: float = float("nan")     # share of the pit deeper than half its depth
     chipped_area_um2: float = 0.0         # chips spalled beside the edges, outside the contact area
     chips_um: tuple = field(default=(), repr=False)   # their outlines (m, 2) each
 
@@ -424,6 +425,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
                          floor_um=(float(fc * pixel_um), float(fr * pixel_um)), pileup_nm=pileup,
                          pileup_volume_um3=vol, edge_bow=bows, cut_by_border=cut, contour_um=cont_um,
                          n_pixels=int(pit.sum()), floor_share=float(np.mean(zs[pit] < -0.8 * depth)),
+                         half_share=float(np.mean(zs[pit] < -0.5 * depth)),
                          chipped_area_um2=chips.chipped_area_um2, chips_um=chips.chips_um)
 
 

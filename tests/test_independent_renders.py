@@ -163,6 +163,24 @@ def test_floor_clipped_by_the_z_range(tmp_path, seed):
         assert "Floor clipped:" in html and "lower bounds" in html
 
 
+def test_floor_clipped_deep_still_measured(tmp_path):
+    """Ruled seed 2 with the lowest 3.5 % of the map read as one value (the floor cut at 68 % of the depth): 43 % of
+    the pit lies deeper than half the depth read, as on a grating's flat-bottomed pits, so only the clipped floor's
+    flag keeps it from being refused. Measured: d -0.43 %, area +0.83 %; held to the single-imprint goals (d 0.5 %
+    or 1 px, area 1 %). Cut deeper (half the depth), the corners lose their way (d -19 %, seed 1 at 2 %):
+    not held here, see docs/indents.md."""
+    r = render_single_ruled(2, size_px=256)
+    z = r.height_nm.astype(float)
+    z = np.maximum(z, np.percentile(z, 3.5))
+    gsf, _ = write_single_ruled(dataclasses.replace(r, height_nm=z.astype(np.float32)), str(tmp_path), "map")
+    res = run_indents([gsf], None, IndentsOptions())
+    assert res.summary["n_files_floor_clipped"] == 1
+    tab, t = res.indents, r.truth
+    assert len(tab["x_um"]) == 1
+    assert abs(tab["d_um"][0] - t["d_mean_um"]) <= max(0.005 * t["d_mean_um"], r.pixel_um)
+    assert abs(tab["area_um2"][0] / t["area_below_original_level_um2"] - 1) <= 0.01
+
+
 def _inverted_cli(tmp_path, capsys, seed):
     """Seed ``seed`` of the ruled renderer with its heights negated, through the CLI: exit code and stderr lines."""
     from markcal.pipeline.cli import main
@@ -731,3 +749,24 @@ def test_report_says_a_map_was_levelled_part_way(tmp_path):
     w = res.summary["corner_level_weight"]
     assert 0.3 <= w <= 0.7, w
     assert f"levelled {100 * w:.0f} % of the way" in indents_report_html(res)
+
+
+@pytest.mark.parametrize("seed", [11, 20])
+def test_mean_of_trace_and_retrace_is_still_a_pyramid(tmp_path, seed):
+    """Feedback seeds 11 and 20, the mean of trace and retrace (each moved back by the z loop's lag first), as some
+    AFM software exports it: the two directions' floors differ, and their mean is flatter. 8.5 and 9.2 % of the pit
+    lies deeper than 80 % of its depth, over the flat-bottom gate (8.5 %), and the map was refused (`no imprint
+    found`); but only 0.28 and 0.25 lies deeper than half its depth (a pyramid 0.25, the real grating's pits 0.43 and
+    more). Measured now: one imprint, d -0.18 and +0.35 %; held to the real-map goal (3 %)."""
+    from scipy import ndimage
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    from markcal.stages.scan_lag import scan_lag
+    r = render_feedback(seed)
+    trace, retrace = r.height_nm.astype(float), r.retrace_nm.astype(float)
+    lag = scan_lag(trace, retrace).lag_px
+    mean = (ndimage.shift(trace, (0, -lag), order=1, mode="nearest")
+            + ndimage.shift(retrace, (0, lag), order=1, mode="nearest")) / 2
+    path, _ = write_feedback(dataclasses.replace(r, height_nm=mean.astype(np.float32)), str(tmp_path), "mean", "gsf")
+    tab = run_indents([path], None, IndentsOptions()).indents
+    assert len(tab["d_um"]) == 1
+    assert abs(100 * (tab["d_um"][0] / r.truth["d_um"] - 1)) <= 3.0, tab["d_um"][0]
