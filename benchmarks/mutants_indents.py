@@ -17,16 +17,16 @@ _SINGLE = "tests/test_indent_single.py"
 
 _WIDE = "tests/test_independent_renders.py::test_single_ruled_imprint_with_wide_radial_cracks"
 
-_FB_CRACKS = "tests/test_independent_renders.py::test_feedback_render_cracks_do_not_carry_the_corners_out"
-_FB_CHIPS = "tests/test_independent_renders.py::test_feedback_render_chips_are_left_out_of_the_area"
-_FB_EVERY = "tests/test_independent_renders.py::test_cracks_at_every_corner_no_longer_carry_the_corners_out"
-_FB_26 = "tests/test_independent_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
+_FB_CRACKS = "tests/test_feedback_renders.py::test_feedback_render_cracks_do_not_carry_the_corners_out"
+_FB_CHIPS = "tests/test_feedback_renders.py::test_feedback_render_chips_are_left_out_of_the_area"
+_FB_EVERY = "tests/test_feedback_renders.py::test_cracks_at_every_corner_no_longer_carry_the_corners_out"
+_FB_26 = "tests/test_feedback_renders.py::test_cracks_from_three_corners_to_the_border_are_measured_whole"
 _CORNER_LEVEL = "tests/test_indent_corner_level.py"
 _LAG = "tests/test_scan_lag.py"
-_FB_BEYOND = "tests/test_independent_renders.py::test_feedback_render_corners_on_the_surface_beyond_them"
-_FB_LONG = "tests/test_independent_renders.py::test_feedback_render_chips_along_much_of_an_edge"
-_FB_19 = "tests/test_independent_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
-_WHISPER = "tests/test_independent_renders.py::test_feedback_render_a_whisper_of_noise_moves_nothing"
+_FB_BEYOND = "tests/test_feedback_renders.py::test_feedback_render_corners_on_the_surface_beyond_them"
+_FB_LONG = "tests/test_feedback_renders.py::test_feedback_render_chips_along_much_of_an_edge"
+_FB_19 = "tests/test_feedback_renders.py::test_feedback_render_far_field_levelled_where_the_corners_do_not_decide"
+_WHISPER = "tests/test_feedback_renders.py::test_feedback_render_a_whisper_of_noise_moves_nothing"
 _ROWS = "tests/test_indent_level_rows.py"
 
 MUTANTS_INDENTS = [
@@ -279,15 +279,15 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "        for c in find_contours(ring, level):\n",
         "new": "        for c in []:\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
-                  "tests/test_independent_renders.py::test_boundary_in_pieces_closed_along_the_border"],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
+                  "tests/test_feedback_renders.py::test_boundary_in_pieces_closed_along_the_border"],
     },
     {   # lines with little far field not counted: a flatten undone on guesswork said nothing (session 16)
         "name": "unflatten-short-lines-uncounted",
         "file": "stages/indent_unflatten.py",
         "old": "    n_short = int(np.sum(np.maximum(n_up, n_down) < SHORT_FAR_FIELD * valid.sum(axis=1)))\n",
         "new": "    n_short = 0\n",
-        "tests": ["tests/test_independent_renders.py::test_flatten_undone_with_little_far_field_is_said"],
+        "tests": ["tests/test_feedback_renders.py::test_flatten_undone_with_little_far_field_is_said"],
     },
     {   # batch leaves text matrices unclaimed (session 16)
         "name": "flow-claims-no-text-matrix",
@@ -357,16 +357,16 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "            keep = valid & ring if it == 0 else prev\n",
         "new": "            keep = valid & ring\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_noise_free_and_far_field_in_corners",
-                  _CORNER_LEVEL, "tests/test_independent_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_noise_free_and_far_field_in_corners",
+                  _CORNER_LEVEL, "tests/test_feedback_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
     },
     {   # a quadratic whatever the far field's spread (session 13)
         "name": "level-always-quadratic",
         "file": "stages/indent_level.py",
         "old": "    if cells.sum() >= 10:\n",
         "new": "    if True:\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers",
-                  "tests/test_independent_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_far_field_in_slivers",
+                  "tests/test_feedback_renders.py::test_feedback_render_far_field_in_slivers_everything_drawn",
                   _FB_19],
     },
     {   # the diagonals' direction from the boundary's far points again (session 13)
@@ -374,7 +374,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_single.py",
         "old": "    theta = _diagonal_angle(zs, pit, depth, nc)\n",
         "new": "    theta = None\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner", _FB_CRACKS, _WHISPER],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_chip_beside_a_corner", _FB_CRACKS, _WHISPER],
     },
     {   # flat-bottomed or unfittable small pits taken for imprints without a spec (session 13)
         "name": "select-pits-not-pyramids",
@@ -389,7 +389,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_select.py",
         "old": "    return bool(m.floor_share > MAX_FLOOR_SHARE and not m.half_share <= MAX_PYRAMID_HALF_SHARE)\n",
         "new": "    return bool(m.floor_share > MAX_FLOOR_SHARE)\n",
-        "tests": ["tests/test_independent_renders.py::test_mean_of_trace_and_retrace_is_still_a_pyramid"],
+        "tests": ["tests/test_feedback_renders.py::test_mean_of_trace_and_retrace_is_still_a_pyramid"],
     },
     {   # the level beyond the corners a yes or no at its threshold again (session 25)
         "name": "level-corners-weight-step",
@@ -397,22 +397,22 @@ MUTANTS_INDENTS = [
         "old": "        return float(np.clip((-self.offset_nm / threshold - 1.0 + CORNER_RAMP) / (2.0 * CORNER_RAMP), 0.0, 1.0))\n",
         "new": "        return float(-self.offset_nm > threshold)\n",
         "tests": ["tests/test_indent_corner_level.py::test_level_beyond_the_corners_taken_in_part_near_its_threshold",
-                  "tests/test_independent_renders.py::test_feedback_render_level_beyond_corners_without_a_cliff"],
+                  "tests/test_feedback_renders.py::test_feedback_render_level_beyond_corners_without_a_cliff"],
     },
     {   # the corner's coarse point the far point along the diagonal again, off-diagonal points not marked down (session 25)
         "name": "single-corner-far-point-only",
         "file": "stages/indent_single.py",
         "old": "        score = along - OFF_DIAGONAL_COST * np.maximum(off - OFF_DIAGONAL_FREE * np.abs(along), 0.0)\n",
         "new": "        score = along\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_off_the_diagonal_is_no_corner"],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_chip_off_the_diagonal_is_no_corner"],
     },
     {   # the corner's sector the whole quadrant again: a chip's tip 25 deg off the diagonal (session 13)
         "name": "single-corner-sector-quadrant",
         "file": "stages/indent_single.py",
         "old": "        sec = np.abs(dphi) < np.pi / (3 * nc)\n",
         "new": "        sec = np.abs(dphi) < np.pi / nc\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_chip_beside_a_corner",
-                  "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_chip_beside_a_corner",
+                  "tests/test_feedback_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
                   _FB_CRACKS],
     },
     {   # squares under the minimum diagonal scored again: a dust blob wins on the real SEM image (session 13)
@@ -505,7 +505,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_corners.py",
         "old": "    if np.hypot(*(kink - corner)) > CRACK_TONGUE_PX:\n",
         "new": "    if False:\n",
-        "tests": [_FB_CRACKS, "tests/test_independent_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
+        "tests": [_FB_CRACKS, "tests/test_feedback_renders.py::test_feedback_render_chips_beside_corners_do_not_take_them",
                   _FB_CHIPS],
     },
     {   # Kaufman's Jacobian alone: the reweighted gradient off by what it leaves out (session 18)
@@ -583,8 +583,8 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "def _trimmed_surface(z, keep, degree, sigma, n_trim=3):\n",
         "new": "def _trimmed_surface(z, keep, degree, sigma, n_trim=0):\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_far_field_under_pile_up_tails", _FB_19,
-                  "tests/test_independent_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_far_field_under_pile_up_tails", _FB_19,
+                  "tests/test_feedback_renders.py::test_feedback_render_far_field_rounds_trimmed_and_kept"],
     },
     {   # never levelled to the surface beyond the corners (session 21)
         "name": "level-corners-never",
@@ -619,14 +619,14 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_level.py",
         "old": "        degree = _bow_degree(keep) if fit_bow else min(_bow_degree(keep), 1)\n",
         "new": "        degree = _bow_degree(keep)\n",
-        "tests": [_CORNER_LEVEL, "tests/test_independent_renders.py::test_feedback_render_levelled_to_the_corners_with_planes_only"],
+        "tests": [_CORNER_LEVEL, "tests/test_feedback_renders.py::test_feedback_render_levelled_to_the_corners_with_planes_only"],
     },
     {   # an imprint open only through a chip that ran to the border flagged cut, without an area (session 21)
         "name": "single-cut-through-chip",
         "file": "stages/indent_single.py",
         "old": "        cut = False\n",
         "new": "        pass\n",
-        "tests": ["tests/test_independent_renders.py::test_chip_running_to_the_border_does_not_cut_the_imprint"],
+        "tests": ["tests/test_feedback_renders.py::test_chip_running_to_the_border_does_not_cut_the_imprint"],
     },
     {   # the whole offset between trace and retrace taken as the lag (session 22)
         "name": "scanlag-not-halved",
@@ -676,14 +676,14 @@ MUTANTS_INDENTS = [
         "old": "        if ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
         "new": "        if not runs and ref_mid is not None and _curve(0.5, coef) > ref_mid + chip_min:\n",
         "tests": ["tests/test_indent_edges.py", _FB_LONG,
-                  "tests/test_independent_renders.py::test_feedback_render_small_chip_beside_a_long_one"],
+                  "tests/test_feedback_renders.py::test_feedback_render_small_chip_beside_a_long_one"],
     },
     {   # the imprint's own plane through what stood outside it where no surface is left but pile-up (session 22)
         "name": "single-far-field-on-pile-up",
         "file": "stages/indent_single.py",
         "old": "        pl = np.zeros(3)\n",
         "new": "        pl = robust_plane(cc[outside].astype(float), rr[outside].astype(float), zz0[outside], n_iter=6)\n",
-        "tests": ["tests/test_independent_renders.py::test_feedback_render_pile_up_all_round_keeps_the_maps_level"],
+        "tests": ["tests/test_feedback_renders.py::test_feedback_render_pile_up_all_round_keeps_the_maps_level"],
     },
     {   # the corners carried to the map's zero, not to the surface beyond them (session 22)
         "name": "corners-at-zero-not-the-surface-beyond",
@@ -711,7 +711,7 @@ MUTANTS_INDENTS = [
         "file": "stages/indent_corners.py",
         "old": "    if level < -BEYOND_MAX_SLOPES * slope_floor:\n",
         "new": "    if False:\n",
-        "tests": [_FB_BEYOND, "tests/test_independent_renders.py::test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whole"],
+        "tests": [_FB_BEYOND, "tests/test_feedback_renders.py::test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whole"],
     },
     {   # the window's plane through a far field on one side of the pit, tilt and all (session 23)
         "name": "single-plane-from-one-side",
