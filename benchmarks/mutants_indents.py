@@ -391,6 +391,13 @@ MUTANTS_INDENTS = [
         "new": "    return bool(m.floor_share > MAX_FLOOR_SHARE)\n",
         "tests": ["tests/test_feedback_renders.py::test_mean_of_trace_and_retrace_is_still_a_pyramid"],
     },
+    {   # a clipped floor's rays from its lowest pixel again, at the cut's edge once levelled (session 25)
+        "name": "single-rays-from-clipped-floor-edge",
+        "file": "stages/indent_single.py",
+        "old": "    if plateau is not None:\n",
+        "new": "    if False:\n",
+        "tests": ["tests/test_independent_renders.py::test_floor_clipped_at_half_its_depth_keeps_its_corners"],
+    },
     {   # the level beyond the corners a yes or no at its threshold again (session 25)
         "name": "level-corners-weight-step",
         "file": "stages/indent_level.py",

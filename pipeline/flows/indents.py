@@ -195,26 +195,28 @@ def _check_fits(img: Image, spec: ArraySpec):
                            f"({img.pixel_um:.3f} µm): image too coarse for the array spec")
 
 
-def _afm_imprint(lv, px, r, c, rad, local_level=True):
+def _afm_imprint(lv, px, r, c, rad, local_level=True, plateau=None):
     """One AFM imprint: the model-free measurement, and the facet model where it is used.
 
     A large imprint (``LARGE_IMPRINT_PX``) takes everything from the model-free measurement;
     its ``apex_depth_nm`` comes from closed-form plane fits per facet instead of the (slow)
-    facet model. ``local_level``: corners on the surface just beyond them (``measure_single``).
+    facet model. ``local_level``: corners on the surface just beyond them; ``plateau``: the pixels of a floor
+    clipped by the scanner's Z range (``measure_single``).
     """
-    single = measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad, local_level=local_level)
+    single = measure_single(lv.z_nm, px, lv.noise_nm, r, c, rad, local_level=local_level, plateau=plateau)
     if single is not None and single.d_um / px >= sel.LARGE_IMPRINT_PX:
         m = sel.merge_afm(None, single, px)
         return dataclasses.replace(m, apex_depth_nm=facet_apex_nm(lv.z_nm, px, single))
     return sel.merge_afm(ind.measure_afm(lv.z_nm, px, r, c, rad, lv.noise_nm, lv.mask, lv.scars), single, px)
 
 
-def _afm_imprints(lv, px, local_level=True) -> list:
+def _afm_imprints(lv, px, local_level=True, plateau=None) -> list:
     """Every pit of a levelled map, measured (None where the measurement failed)."""
-    return [_afm_imprint(lv, px, r, c, rad, local_level) for r, c, rad in ind.detect_pits(lv.z_nm, lv.noise_nm, px)]
+    return [_afm_imprint(lv, px, r, c, rad, local_level, plateau)
+            for r, c, rad in ind.detect_pits(lv.z_nm, lv.noise_nm, px)]
 
 
-def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
+def _level_at_corners(heights, lv, px, imps, floor, say, name, info, plateau=None) -> tuple:
     """Where the surface beyond the imprints' corners lies clearly below the far field's level (pile-up's tails
     under the far field, :func:`markcal.stages.indent_level.corner_level`): the map levelled again with planes
     only, its zero put on that surface, and its imprints measured again. Returns the levelled map and the
@@ -231,7 +233,7 @@ def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     info["levelled_to_corners"] = w > 0
     info["corner_level_weight"] = w
     if w == 0:
-        return lv, _afm_imprints(lv, px)
+        return lv, _afm_imprints(lv, px, plateau=plateau)
     say(f"{name}: the surface beyond the corners lies {lev.offset_nm:+.1f} nm under the far field's level "
         "(pile-up's tails): levelled to it" + ("" if w == 1 else f" by {w:.0%} (the strips scatter nearly as much)"))
     # planes only (a bow through the tails bends under the imprint), then the strips' level taken as zero; where
@@ -240,7 +242,7 @@ def _level_at_corners(heights, lv, px, imps, floor, say, name, info) -> tuple:
     lv = level_single(heights, px, fit_bow=False)
     lev = corner_level(lv.z_nm, corners, centres, diagonals, lv.noise_nm)
     lv = dataclasses.replace(lv, z_nm=w * (lv.z_nm - lev.offset_nm) + (1.0 - w) * lv_far.z_nm)
-    return lv, _afm_imprints(lv, px)
+    return lv, _afm_imprints(lv, px, plateau=plateau)
 
 
 def _scan_lag_px(img: Image, say, name, info) -> float:
@@ -365,6 +367,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
             say(f"{name}: {n_clip} pixels hold the map's lowest height exactly: its floor is clipped (the scanner's "
                 "Z range), depths are lower bounds")
         info["floor_clipped_px"] = n_clip
+        plateau = img.data == np.nanmin(img.data) if n_clip else None        # the cut, flat in the raw heights only
         lv = level_afm(heights, px)
         filled = lv.mask.mean() > 0.3
         if filled:
@@ -373,10 +376,10 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
         _refuse_inverted(lv, px)
         say(f"{name}: detecting and fitting imprints")
         # where the level beyond the corners may follow, the corners that place its strips are taken at 0
-        imps = _afm_imprints(lv, px, local_level=not (spec is None and filled))
+        imps = _afm_imprints(lv, px, local_level=not (spec is None and filled), plateau=plateau)
         floor = max(5.0, 8 * lv.noise_nm)
         if spec is None and filled:
-            lv, imps = _level_at_corners(heights, lv, px, imps, floor, say, name, info)
+            lv, imps = _level_at_corners(heights, lv, px, imps, floor, say, name, info, plateau)
         image = lv.z_nm
         if lag_px := _scan_lag_px(img, say, name, info):
             # every slope lies lag_px along the fast axis from the surface, sizes are not changed by it:
