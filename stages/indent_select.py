@@ -61,7 +61,8 @@ def merge_afm(facet: Imprint | None, single, pixel_um: float) -> Imprint | None:
     extra = dict(area_um2=single.area_um2, pileup_volume_um3=single.pileup_volume_um3,
                  edge_bow=float(np.nanmean(single.edge_bow)) if np.isfinite(single.edge_bow).any() else nan,
                  cut_by_border=bool(single.cut_by_border), contour_um=single.contour_um, floor_um=single.floor_um,
-                 apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share, half_share=single.half_share,
+                 apex_depth_nm=facet.depth_nm if facet is not None else nan, floor_share=single.floor_share,
+                 half_share=single.half_share,
                  chipped_area_um2=single.chipped_area_um2, chips_um=single.chips_um)
     if facet is not None and single.d_um / pixel_um < LARGE_IMPRINT_PX:
         if np.isfinite(single.depth_nm) and rounding_px(facet, pixel_um) >= 1.0:
@@ -108,8 +109,9 @@ def _flat_bottomed(m) -> bool:
 MIN_CLIPPED_PX = 8
 
 
-def clipped_floor_px(z_nm: np.ndarray) -> int:
-    """Pixels holding exactly the map's lowest height when there are ``MIN_CLIPPED_PX`` or more, else 0.
+def clipped_floor(z_nm: np.ndarray) -> np.ndarray | None:
+    """The pixels holding exactly the map's lowest height (bool, the map's shape) when there are ``MIN_CLIPPED_PX``
+    or more, else None.
 
     A scanner at the end of its Z range reads one value wherever the surface lies deeper: the floor of an
     imprint deeper than the range becomes a plateau of equal heights. A scanned floor has noise (even a
@@ -118,9 +120,15 @@ def clipped_floor_px(z_nm: np.ndarray) -> int:
     z = np.asarray(z_nm)
     fin = np.isfinite(z)
     if not fin.any():
-        return 0
-    n = int(np.count_nonzero(z[fin] == z[fin].min()))
-    return n if n >= MIN_CLIPPED_PX else 0
+        return None
+    low = fin & (z == z[fin].min())
+    return low if np.count_nonzero(low) >= MIN_CLIPPED_PX else None
+
+
+def clipped_floor_px(z_nm: np.ndarray) -> int:
+    """How many pixels :func:`clipped_floor` holds (0 without a clipped floor)."""
+    low = clipped_floor(z_nm)
+    return 0 if low is None else int(np.count_nonzero(low))
 
 
 def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,

@@ -539,3 +539,22 @@ def _two_d_ibw(z, unit):
     total = int(np.frombuffer(bytes(raw[:384]), "<i2").astype(np.int64).sum())
     struct.pack_into("<h", raw, 2, ((-total + 32768) % 65536) - 32768)
     return bytes(raw)
+
+
+def test_real_grating_pits_are_flat_bottomed_by_both_shares(monkeypatch):
+    """The real grating grid1.nid (square pits, no imprint): the flat-bottom gate asks two things since session 25,
+    over 8.5 % of a pit deeper than 80 % of its depth and over 40 % deeper than half (a mean of trace and retrace
+    flattens a pyramid's floor past the first alone: 8.5-10 %, while its half-depth share stays 0.25-0.38). Every
+    pit of the grating over the first is over the second too (measured 0.43-0.74), so the gate itself, not only the
+    H/D and pyramid tests behind it, still refuses them; and none is taken for an imprint."""
+    from markcal.pipeline.flows import indents as flow
+    from markcal.stages import indent_select as sel
+    seen = []
+    accept = sel.accept_imprints
+    monkeypatch.setattr(flow.sel, "accept_imprints", lambda imps, *a, **k: seen.extend(imps) or accept(imps, *a, **k))
+    with pytest.raises(MarkcalError, match="no imprint found"):
+        flow.measure_file(_real("afm/nanosurf_nid/grid1.nid"), None, flow.IndentsOptions())
+    deep = [m for m in seen if m is not None and m.floor_share > sel.MAX_FLOOR_SHARE]
+    assert len(deep) >= 10, len(deep)
+    assert all(m.half_share > sel.MAX_PYRAMID_HALF_SHARE for m in deep), sorted(m.half_share for m in deep)
+    assert all(sel._flat_bottomed(m) for m in deep)

@@ -362,12 +362,12 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
                 say(f"{name}: {undone.n_short_lines} of {undone.n_lines} lines have under 15 % of their length on "
                     "the far field (pile-up or the imprint reaches their ends): their level is uncertain, so are "
                     "the depth and area")
-        if n_clip := sel.clipped_floor_px(img.data):
+        plateau = sel.clipped_floor(img.data)        # the cut: flat in the raw heights only, tilted once levelled
+        if n_clip := 0 if plateau is None else int(plateau.sum()):
             # the Z range's end: the floor is cut flat, the depth a lower bound
             say(f"{name}: {n_clip} pixels hold the map's lowest height exactly: its floor is clipped (the scanner's "
                 "Z range), depths are lower bounds")
         info["floor_clipped_px"] = n_clip
-        plateau = img.data == np.nanmin(img.data) if n_clip else None        # the cut, flat in the raw heights only
         lv = level_afm(heights, px)
         filled = lv.mask.mean() > 0.3
         if filled:
@@ -499,7 +499,8 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "n_files_flatten_uncertain": int(sum(bool(f.info.get("line_flatten_uncertain")) for f in files)),
         "n_files_levelled_to_corners": int(sum(bool(f.info.get("levelled_to_corners")) for f in files)),
         "corner_level_nm": files[0].info.get("corner_level_nm") if files[0].info.get("levelled_to_corners") else None,
-        "corner_level_weight": files[0].info.get("corner_level_weight") if files[0].info.get("levelled_to_corners") else None,
+        "corner_level_weight": (files[0].info.get("corner_level_weight") if files[0].info.get("levelled_to_corners")
+                                else None),
         "n_files_lag_removed": int(sum(f.info.get("scan_lag_px") is not None for f in files)),
         "scan_lag_px": files[0].info.get("scan_lag_px"),
         "mean_d_um": float(np.mean(t["d_um"])),
