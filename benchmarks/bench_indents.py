@@ -18,8 +18,26 @@ import time
 
 import numpy as np
 
-from markcal.fixtures.indent_maps import AfmOptions, OmOptions, array_toml, render_afm, render_om, tiff_bytes
+from markcal.fixtures.indent_maps import (AfmOptions, OmOptions, array_toml, ibw_bytes, render_afm, render_om,
+                                         tiff_bytes)
 from markcal.pipeline.flows.indents import IndentsOptions, measure_file, optics_reference, read_array_spec, run_indents
+
+
+#: the retrace of the two-direction speed cases: the trace moved this far along the fast axis (px), its own noise
+TWO_DIRECTIONS_OFFSET_PX = 3.0
+
+
+def _two_directions_ibw(path, z_nm, pixel_um, noise_nm=0.5, seed=0):
+    """``path``: an Asylum IBW holding ``z_nm`` as HeightTrace and as HeightRetrace, the retrace moved by
+    ``TWO_DIRECTIONS_OFFSET_PX`` along the fast axis with noise of its own (a z loop's lag both ways), so the
+    flow measures it too."""
+    from scipy import ndimage
+    z = np.asarray(z_nm, float)
+    back = ndimage.shift(z, (0.0, -TWO_DIRECTIONS_OFFSET_PX), order=3, mode="nearest")
+    back = back + np.random.default_rng(seed).normal(0.0, noise_nm, z.shape)
+    with open(path, "wb") as fh:
+        fh.write(ibw_bytes({"HeightTrace": z * 1e-9, "HeightRetrace": back * 1e-9}, pixel_um * 1e-6))
+    return path
 
 
 def _files(folder, r):
@@ -121,12 +139,17 @@ def _speed(a, tmp):
     with open(path, "wb") as fh:
         fh.write(single_ibw(r))
     cases.append(("256x256 single-imprint AFM map (IBW)", path, None, 0.3))
+    cases.append(("  the same, trace and retrace (both measured)",
+                  _two_directions_ibw(os.path.join(tmp, "single2.ibw"), r.data, r.pixel_um), None, 0.3))
     for size, goal in ((512, 0.5), (1024, 2.0)):
         r = render_afm(1000, AfmOptions(size_px=size))
         sub = os.path.join(tmp, f"afm{size}")
         os.makedirs(sub, exist_ok=True)
         path, spec = _files(sub, r)
         cases.append((f"{size}x{size} AFM map, 5x5 array", path, spec, goal))
+        two = _two_directions_ibw(os.path.join(sub, "map2.ibw"), r.data, r.pixel_um)
+        cases.append(("  the same, trace and retrace", two, spec, goal))
+        cases.append(("  the same without the spec (25: retrace not measured)", two, None, goal))
     r = render_om(1000, OmOptions(size_px=1024, pixel_um=0.05, nominal_um=2.0))
     sub = os.path.join(tmp, "om1024")
     os.makedirs(sub, exist_ok=True)

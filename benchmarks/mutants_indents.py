@@ -651,10 +651,17 @@ MUTANTS_INDENTS = [
     },
     {   # positions moved the way of the lag instead of back (session 22)
         "name": "scanlag-moved-with-the-lag",
-        "file": "pipeline/flows/indents.py",
-        "old": "            imps = [m if m is None else m.moved(-lag_px * px) for m in imps]\n",
-        "new": "            imps = [m if m is None else m.moved(lag_px * px) for m in imps]\n",
-        "tests": [_LAG],
+        "file": "stages/scan_lag.py",
+        "old": "        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(-lag_um))\n",
+        "new": "        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(lag_um))\n",
+        "tests": [_LAG, "tests/test_scan_lag.py::test_pair_directions_moves_back_by_the_lag_where_the_retrace_has_none"],
+    },
+    {   # the boundary the report draws moved with the lag instead of back (session 26)
+        "name": "scanlag-boundary-moved-with-the-lag",
+        "file": "stages/scan_lag.py",
+        "old": "    base = trace.moved(-lag_um)\n",
+        "new": "    base = trace.moved(lag_um)\n",
+        "tests": ["tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
     },
     {   # the picked layer handed over as its own other direction (session 22)
         "name": "io-ibw-other-direction-itself",
@@ -754,5 +761,27 @@ MUTANTS_INDENTS = [
         "old": "        split = (np.abs(off - nb) > tol) & (at_nb >= np.maximum(0.15 * cnt, 8))\n",
         "new": "        split = np.zeros(ny, bool)\n",
         "tests": [_ROWS],
+    },
+    {   # the trace's imprints moved back by the whole map's lag alone again, the retrace not measured (session 26)
+        "name": "lag-trace-only",
+        "file": "pipeline/flows/indents.py",
+        "old": "    if (spec is not None or img.other_direction is None\n",
+        "new": "    if (True or img.other_direction is None\n",
+        "tests": ["tests/test_scan_lag.py::test_feedback_render_corners_from_both_scan_directions"],
+    },
+    {   # the retrace's corners paired in the order they come, not by their places (session 26)
+        "name": "lag-corners-unpaired",
+        "file": "stages/scan_lag.py",
+        "old": "    return np.roll(b, -best, axis=0)\n",
+        "new": "    return b\n",
+        "tests": ["tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
+    },
+    {   # the mean of the two directions' areas and depths (session 26: the mean area missed its goal more often)
+        "name": "lag-sizes-averaged",
+        "file": "stages/scan_lag.py",
+        "old": "                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter))\n",
+        "new": "                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter),\n"
+               "                   area_um2=0.5 * (trace.area_um2 + retrace.area_um2), depth_nm=max(trace.depth_nm, retrace.depth_nm))\n",
+        "tests": ["tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
     },
 ]

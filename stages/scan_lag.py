@@ -12,12 +12,14 @@ channel lies to the right (+x, growing column) of the surface.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["ScanLag", "scan_lag", "unlag"]
+from .indent_geometry import Imprint, diagonals
+
+__all__ = ["ScanLag", "both_directions", "pair_directions", "scan_lag", "unlag"]
 
 LAG_MAX_PX = 8.0            # a larger lag is not a z loop's (a scan this slow to follow is not measured)
 MIN_CORRELATION = 0.5       # the two directions' slopes must agree this well at their offset
@@ -107,3 +109,61 @@ def unlag(z_nm: np.ndarray, lag_px: float) -> np.ndarray:
     if bad.any():
         out[ndimage.shift(bad.astype(float), (0.0, -lag_px), order=1, mode="nearest") > 0.01] = np.nan
     return out
+
+
+def _paired_corners(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``b`` (n, 2) reordered to pair with ``a`` corner by corner (the same turn round the imprint, the rotation
+    with the smallest largest distance)."""
+    n = len(a)
+    best = min(range(n), key=lambda k: float(np.max(np.hypot(*(a - np.roll(b, -k, axis=0)).T))))
+    return np.roll(b, -best, axis=0)
+
+
+def both_directions(trace: Imprint, retrace: Imprint, lag_um: float) -> Imprint:
+    """One imprint from its measurements on the trace and on the retrace (the same channel scanned both ways).
+
+    The z loop lays every slope a little along the scan direction: the trace shows a corner one way, the
+    retrace as far the other way, by how much depends on the loop and on the slope (a ramp's lag near the
+    imprint's border is not the whole map's). The mean of the two positions, corner by corner, cancels it
+    whatever its size (feedback renderer, seeds 1-120: corners within 1.5 px on 93 % of seeds, 82 % with the
+    whole map moved back by one lag). So the centre and the corners are the means, and the diagonals those of
+    the mean corners. Everything else is the trace's, its boundary, floor and chips moved back by ``lag_um``
+    (the report draws them on the trace moved back by it): the area is the boundary's, and the two directions'
+    areas differ little (correlation 0.77 over those seeds; their mean missed the 1 % goal more often, 67 against
+    70 %); depth stays the trace's, as a border-plane reading of the channel takes it.
+    """
+    base = trace.moved(-lag_um)
+    corners = 0.5 * (np.asarray(trace.corners_um, float) + _paired_corners(np.asarray(trace.corners_um, float),
+                                                                          np.asarray(retrace.corners_um, float)))
+    d1, d2, orient = diagonals(corners)
+    diameter = 0.5 * (trace.diameter_um + retrace.diameter_um)
+    return replace(base, x_um=0.5 * (trace.x_um + retrace.x_um), y_um=0.5 * (trace.y_um + retrace.y_um),
+                   corners_um=corners, diag1_um=float(d1), diag2_um=float(d2), orientation_deg=float(orient),
+                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter))
+
+
+def pair_directions(trace: list, retrace: list, lag_um: float) -> tuple:
+    """Each imprint of the trace (None: not measured) with the retrace's imprint at its place
+    (:func:`both_directions`), or moved back by ``lag_um`` alone where the retrace has none there.
+
+    The retrace's imprint lies ``2 lag_um`` left of the trace's; it is the one nearest that place, within a
+    quarter of the trace imprint's mean diagonal.
+
+    Returns
+    -------
+    list, int
+        The imprints (the trace's order) and how many were paired.
+    """
+    found = [m for m in retrace if m is not None]
+    xy = np.array([[m.x_um, m.y_um] for m in found]).reshape(-1, 2)
+    out, n_paired = [], 0
+    for m in trace:
+        if m is None:
+            out.append(None)
+            continue
+        dist = np.hypot(xy[:, 0] - (m.x_um - 2 * lag_um), xy[:, 1] - m.y_um)
+        j = int(np.argmin(dist)) if len(dist) else -1
+        paired = j >= 0 and dist[j] <= 0.25 * m.d_um
+        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(-lag_um))
+        n_paired += paired
+    return out, n_paired
