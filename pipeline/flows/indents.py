@@ -256,8 +256,8 @@ def _scan_lag_px(img: Image, say, name, info) -> float:
             f"offset {2 * lag.lag_px:+.2f} px): positions keep the z loop's lag")
         return 0.0
     info["scan_lag_px"] = lag.lag_px
-    say(f"{name}: trace and retrace {abs(2 * lag.lag_px):.2f} px apart along the fast axis: positions moved by "
-        f"the z loop's lag, {-lag.lag_px:+.2f} px")
+    say(f"{name}: trace and retrace {abs(2 * lag.lag_px):.2f} px apart along the fast axis (the z loop's lag, "
+        f"{lag.lag_px:+.2f} px)")
     return lag.lag_px
 
 
@@ -341,10 +341,10 @@ BOTH_DIRECTIONS_MAX_IMPRINTS = 4
 def _other_direction(img: Image, imps: list, floor: float, spec) -> list | None:
     """The imprints of the channel's other scan direction (:func:`_afm_channel`), measured where the file holds
     it, no array spec is given (an array's positions are registered to its lattice, which takes a shift of the
-    whole map) and the map holds at most :data:`BOTH_DIRECTIONS_MAX_IMPRINTS` imprints; None otherwise, or where
+    whole map) and the map holds one to :data:`BOTH_DIRECTIONS_MAX_IMPRINTS` imprints; None otherwise, or where
     its measurement fails."""
     if (spec is not None or img.other_direction is None
-            or len(sel.accept_imprints(imps, img.pixel_um, floor)) > BOTH_DIRECTIONS_MAX_IMPRINTS):
+            or not 1 <= len(sel.accept_imprints(imps, img.pixel_um, floor)) <= BOTH_DIRECTIONS_MAX_IMPRINTS):
         return None
     try:
         return _afm_channel(img.other_direction, img.pixel_um, spec, lambda m: None, "", {})[1]
@@ -419,6 +419,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
                     "centres and corners the means of both scan directions")
             else:
                 imps = [m if m is None else m.moved(-lag_px * px) for m in imps]
+                say(f"{name}: positions moved back by the lag, {-lag_px:+.2f} px")
             image = unlag(image, lag_px)
         info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
     elif spec is None and (single := _micrograph_single(img, say, info)):
