@@ -141,6 +141,10 @@ def _speed(a, tmp):
     cases.append(("256x256 single-imprint AFM map (IBW)", path, None, 0.3))
     cases.append(("  the same, trace and retrace (both measured)",
                   _two_directions_ibw(os.path.join(tmp, "single2.ibw"), r.data, r.pixel_um), None, 0.3))
+    from markcal.fixtures.indent_afm_feedback import render_feedback, write_feedback
+    path, _ = write_feedback(render_feedback(7, 1024), tmp, "feedback1024", "ibw")
+    cases.append(("1024x1024 single imprint, trace and retrace (feedback seed 7; trace only measured)", path, None,
+                  2.0))
     for size, goal in ((512, 0.5), (1024, 2.0)):
         r = render_afm(1000, AfmOptions(size_px=size))
         sub = os.path.join(tmp, f"afm{size}")

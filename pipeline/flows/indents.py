@@ -333,17 +333,19 @@ def _micrograph_dots(img: Image, spec, opt, say, info, held) -> tuple:
     return imps, img.data / bg, spots
 
 
-#: the most imprints a map without an array spec may hold for its other scan direction to be measured too (each
-#: direction costs as much: a 512 x 512 map of 25 imprints took 0.66 s with both, against the 0.5 s goal)
+#: the most imprints, and pixels, a map without an array spec may hold for its other scan direction to be measured
+#: too. Each direction costs as much: a 512 x 512 map of 25 imprints took 0.66 s with both (goal 0.5 s), a
+#: 1024 x 1024 map of one imprint 3.7-4.0 s (goal 2 s; 1.9 s one way)
 BOTH_DIRECTIONS_MAX_IMPRINTS = 4
+BOTH_DIRECTIONS_MAX_PIXELS = 512 * 512
 
 
 def _other_direction(img: Image, imps: list, floor: float, spec) -> list | None:
     """The imprints of the channel's other scan direction (:func:`_afm_channel`), measured where the file holds
     it, no array spec is given (an array's positions are registered to its lattice, which takes a shift of the
-    whole map) and the map holds one to :data:`BOTH_DIRECTIONS_MAX_IMPRINTS` imprints; None otherwise, or where
-    its measurement fails."""
-    if (spec is not None or img.other_direction is None
+    whole map) and the map holds one to :data:`BOTH_DIRECTIONS_MAX_IMPRINTS` imprints and at most
+    :data:`BOTH_DIRECTIONS_MAX_PIXELS` pixels; None otherwise, or where its measurement fails."""
+    if (spec is not None or img.other_direction is None or img.data.size > BOTH_DIRECTIONS_MAX_PIXELS
             or not 1 <= len(sel.accept_imprints(imps, img.pixel_um, floor)) <= BOTH_DIRECTIONS_MAX_IMPRINTS):
         return None
     try:
