@@ -6,7 +6,6 @@ row's offset from its far-field pixels, scars patched. Nothing is taken from ins
 """
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -76,8 +75,8 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bo
             feat, off0 = _first_features(z, keep, valid, sigma)
         else:
             zs = ndimage.gaussian_filter(z, 1.0)
-            feat = ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > 5 * sigma,
-                                           structure=np.ones((7, 7), bool))
+            # grown by 3 px: a 7 x 7 square (separable: a maximum filter is the same dilation, three times faster)
+            feat = ndimage.maximum_filter(np.abs(zs - np.median(zs[keep])) > 5 * sigma, size=7, mode="constant")
         prev, keep = keep, valid & ~feat
         if keep.sum() < 0.02 * valid.sum():
             # nearly all masked: the first round's ring, later the last round's far field (a bow fitted to
@@ -94,18 +93,17 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bo
         # line offsets from the far field of each row, the scars found so far left out
         use = keep & ~scars
         cnt = use.sum(axis=1)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)                # rows without far field
-            off = np.nanmedian(np.where(use, za, np.nan), axis=1) if cnt.max() >= min_row else np.full(ny, np.nan)
+        # (a sort per row: numpy's nanmedian along an axis goes row by row in Python, 0.17 s on a 1024 x 1024 map)
+        off = _row_nanmedian(za, use) if cnt.max() >= min_row else np.full(ny, np.nan)
         off[cnt < min_row] = np.nan
         # a row whose far field splits into two levels, one of them its neighbours' (a scar over most of
         # it), has no single offset: the median would follow the scar and shift the rest of the row, the
         # imprint's floor included; such a row takes its neighbours' offset and the scar is patched below
         tol = max(4.0 * sigma, 2.0)
         padded = np.pad(off, 3, constant_values=np.nan)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)                # rows without neighbours
-            nb = np.nanmedian(np.stack([padded[3 + k:3 + k + ny] for k in (-3, -2, -1, 1, 2, 3)]), axis=0)
+        around = np.stack([padded[3 + k:3 + k + ny] for k in (-3, -2, -1, 1, 2, 3)], axis=1)
+        has = np.isfinite(around)
+        nb = np.where(has.any(axis=1), _row_nanmedian(np.where(has, around, 0.0), has), np.nan)   # NaN: none
         # two levels: pixels at the neighbours' level that are not at the row's own (a row only a little off its
         # neighbours is the lines' own jitter, 0.5-5 nm on the feedback renderer, its pixels at its own level; counted
         # within tol of the neighbours' alone, 0.05 nm more noise had moved its offset to theirs, 5-15 nm, on most seeds)
@@ -169,11 +167,10 @@ def _first_features(z, keep, valid, sigma):
     field unmasked (where pile-up lobes reach the sides, removing the strips' level marks more).
     """
     thr = max(5 * sigma, 20.0)
-    grow = np.ones((7, 7), bool)
     found = []
     for off in (np.zeros(z.shape[0]), _side_strip_offsets(z, valid)):
         zs = ndimage.gaussian_filter(z - off[:, None], 1.0)
-        found.append((ndimage.binary_dilation(np.abs(zs - np.median(zs[keep])) > thr, structure=grow), off))
+        found.append((ndimage.maximum_filter(np.abs(zs - np.median(zs[keep])) > thr, size=7, mode="constant"), off))
     return min(found, key=lambda f: int(f[0].sum()))
 
 
