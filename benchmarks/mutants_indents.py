@@ -240,8 +240,8 @@ MUTANTS_INDENTS = [
     {   # a line-flattened scan measured as it is, the lines' fits not taken again from the far field (session 15)
         "name": "flow-line-flatten-left-in",
         "file": "pipeline/flows/indents.py",
-        "old": "            heights = undone.z_nm\n",
-        "new": "            pass\n",
+        "old": "        heights = undone.z_nm\n",
+        "new": "        pass\n",
         "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_flattened_line_by_line"],
     },
     {   # the signature's tolerance at half the noise: plain noisy scans taken for flattened (session 15)
@@ -765,8 +765,8 @@ MUTANTS_INDENTS = [
     {   # the trace's imprints moved back by the whole map's lag alone again, the retrace not measured (session 26)
         "name": "lag-trace-only",
         "file": "pipeline/flows/indents.py",
-        "old": "    if (spec is not None or img.other_direction is None\n",
-        "new": "    if (True or img.other_direction is None\n",
+        "old": "    if (spec is not None or img.other_direction is None or img.data.size > BOTH_DIRECTIONS_MAX_PIXELS\n",
+        "new": "    if (True or img.other_direction is None or img.data.size > BOTH_DIRECTIONS_MAX_PIXELS\n",
         "tests": ["tests/test_scan_lag.py::test_feedback_render_corners_from_both_scan_directions"],
     },
     {   # the retrace's corners paired in the order they come, not by their places (session 26)

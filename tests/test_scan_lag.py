@@ -99,21 +99,28 @@ def _corner_px(tab, k, truth):
     return min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) / truth["pixel_um"]
 
 
+def _feedback_ibw(tmp_path, seed):
+    """Feedback seed ``seed`` written as IBW (trace and retrace) and measured: the render, the run, and the worst
+    corner's error (px) and d's error (m) of the row nearest the true centre."""
+    r = render_feedback(seed)
+    ibw, _ = write_feedback(r, str(tmp_path), f"fb{seed}", "ibw")
+    res = run_indents([ibw], None, IndentsOptions())
+    t, tab = r.truth, res.indents
+    k = int(np.argmin(np.hypot(tab["x_um"] - t["centre_um"][0], tab["y_um"] - t["centre_um"][1])))
+    return r, res, _corner_px(tab, k, t), abs(tab["d_um"][k] - t["d_um"])
+
+
 @pytest.mark.parametrize("seed", [2, 10])
 def test_feedback_render_trace_and_retrace_put_the_corners_back(tmp_path, seed):
     """Feedback-loop renders (z loop lag 1.8-1.9 px): from the trace alone every corner lies ~2 px right of the
     truth (2.09, 1.98 px); with the retrace in the same IBW the corners are within the 1.5 px goal, the lag is
     in summary.json and d within the goal, 0.5 % or 1 px (the correction moves, it does not resize)."""
-    r = render_feedback(seed)
-    ibw, _ = write_feedback(r, str(tmp_path), f"fb{seed}", "ibw")
-    gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}", "gsf")
-    res = run_indents([ibw], None, IndentsOptions())
+    r, res, corner_px, d_err_um = _feedback_ibw(tmp_path, seed)
     t = r.truth
-    tab = res.indents
-    k = int(np.argmin(np.hypot(tab["x_um"] - t["centre_um"][0], tab["y_um"] - t["centre_um"][1])))
-    assert _corner_px(tab, k, t) <= 1.5
-    assert abs(tab["d_um"][k] - t["d_um"]) <= max(0.005 * t["d_um"], t["pixel_um"])
+    assert corner_px <= 1.5
+    assert d_err_um <= max(0.005 * t["d_um"], t["pixel_um"])
     assert 1.0 <= res.summary["scan_lag_px"] <= 3.0 and res.summary["n_files_lag_removed"] == 1
+    gsf, _ = write_feedback(r, str(tmp_path), f"fb{seed}", "gsf")
     alone = run_indents([gsf], None, IndentsOptions())
     assert _corner_px(alone.indents, 0, t) > 1.5                  # the case this is about
     assert alone.summary["scan_lag_px"] is None and alone.summary["n_files_lag_removed"] == 0
@@ -162,14 +169,9 @@ def test_feedback_render_corners_from_both_scan_directions(tmp_path, seed):
     """Feedback-loop renders whose whole-map lag (half the directions' offset: 1.99 and 2.95 px) is not the
     corners' shift (ramp lag 1.28 and 1.72 px, and less at the imprint's border): moved back by it, the worst
     corner was 1.67 and 2.74 px off. Measured on the retrace too, corner by corner, within the 1.5 px goal."""
-    r = render_feedback(seed)
-    ibw, _ = write_feedback(r, str(tmp_path), f"fb{seed}", "ibw")
-    res = run_indents([ibw], None, IndentsOptions())
-    t = r.truth
-    tab = res.indents
-    k = int(np.argmin(np.hypot(tab["x_um"] - t["centre_um"][0], tab["y_um"] - t["centre_um"][1])))
-    assert _corner_px(tab, k, t) <= 1.5
-    assert abs(tab["d_um"][k] - t["d_um"]) <= max(0.005 * t["d_um"], t["pixel_um"])
+    r, res, corner_px, d_err_um = _feedback_ibw(tmp_path, seed)
+    assert corner_px <= 1.5
+    assert d_err_um <= max(0.005 * r.truth["d_um"], r.truth["pixel_um"])
     assert res.files[0].info["n_both_directions"] == 1
 
 
