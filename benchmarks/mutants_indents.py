@@ -784,4 +784,19 @@ MUTANTS_INDENTS = [
                "                   area_um2=0.5 * (trace.area_um2 + retrace.area_um2), depth_nm=max(trace.depth_nm, retrace.depth_nm))\n",
         "tests": ["tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
     },
+    {   # a retrace imprint paired whatever it says (session 26: a retrace cut short had read d 19.4 µm for 23.5)
+        "name": "lag-pair-without-agreement",
+        "file": "stages/scan_lag.py",
+        "old": "        paired = j >= 0 and dist[j] <= 0.25 * m.d_um and _agree(m, found[j], pixel_um)\n",
+        "new": "        paired = j >= 0 and dist[j] <= 0.25 * m.d_um\n",
+        "tests": ["tests/test_scan_lag.py::test_pair_directions_refuses_a_retrace_that_disagrees",
+                  "tests/test_scan_lag.py::test_feedback_render_retrace_cut_short_is_not_paired"],
+    },
+    {   # the border flags not compared (session 26)
+        "name": "lag-pair-cut-ignored",
+        "file": "stages/scan_lag.py",
+        "old": "    if bool(trace.cut_by_border) != bool(retrace.cut_by_border):\n",
+        "new": "    if False:\n",
+        "tests": ["tests/test_scan_lag.py::test_pair_directions_refuses_a_retrace_that_disagrees"],
+    },
 ]

@@ -3,6 +3,7 @@
 Tolerances: the issue's corner goal is 1.5 px, so the lag (which moves every corner) is asked to 0.05 px on
 maps moved by a known amount; on the feedback-loop renderer the corners are held to the goal itself.
 """
+import dataclasses
 import itertools
 import json
 
@@ -158,10 +159,41 @@ def test_pair_directions_moves_back_by_the_lag_where_the_retrace_has_none():
     lag = 0.2
     trace = [_imprint(a + [lag, 0.0]), None, _imprint(a + [40.0 + lag, 0.0])]
     retrace = [_imprint(a - [lag, 0.0]), _imprint(a + [20.0, 20.0])]
-    out, n = pair_directions(trace, retrace, lag)
+    out, n = pair_directions(trace, retrace, lag, 0.1)
     assert n == 1 and out[1] is None
     assert np.allclose(out[0].corners_um, a) and np.allclose(out[2].corners_um, a + [40.0, 0.0])
-    assert pair_directions(trace, [], lag)[1] == 0
+    assert pair_directions(trace, [], lag, 0.1)[1] == 0
+
+
+def test_pair_directions_refuses_a_retrace_that_disagrees():
+    """A retrace imprint one of whose corners lies 0.5 µm (5 px) off the others' common shift, or one cut by the border
+    where the trace's is not, is not the trace's imprint measured again: the trace's moved back by the lag."""
+    a = np.array([[10.0, 5.0], [5.0, 10.0], [0.0, 5.0], [5.0, 0.0]])
+    lag = 0.2
+    trace = [_imprint(a + [lag, 0.0])]
+    off_corner = a - [lag, 0.0]
+    off_corner[1] += [0.0, 0.5]
+    out, n = pair_directions(trace, [_imprint(off_corner)], lag, 0.1)
+    assert n == 0 and np.allclose(out[0].corners_um, a)
+    off_corner[1] -= [0.0, 0.25]                                    # 2.5 px: within the 3 px tolerance
+    assert pair_directions(trace, [_imprint(off_corner)], lag, 0.1)[1] == 1
+    cut = dataclasses.replace(_imprint(a - [lag, 0.0]), cut_by_border=True)
+    assert pair_directions(trace, [cut], lag, 0.1)[1] == 0
+
+
+def test_feedback_render_retrace_cut_short_is_not_paired(tmp_path):
+    """Feedback seed 27 with the retrace's lower half not scanned (NaN): its imprint is cut there, so the trace's is
+    kept (moved back by the lag) and d stays within the goal; paired, the mean corners had read d 19.4 µm (truth
+    23.5)."""
+    r = render_feedback(27)
+    back = r.retrace_nm.astype(float)
+    back[back.shape[0] // 2:] = np.nan
+    path = tmp_path / "half.ibw"
+    path.write_bytes(ibw_bytes({"HeightTrace": r.height_nm * 1e-9, "HeightRetrace": back * 1e-9},
+                               r.truth["pixel_um"] * 1e-6))
+    res = run_indents([str(path)], None, IndentsOptions())
+    assert res.files[0].info["n_both_directions"] == 0
+    assert abs(res.indents["d_um"][0] - r.truth["d_um"]) <= max(0.005 * r.truth["d_um"], r.truth["pixel_um"])
 
 
 @pytest.mark.parametrize("seed", [27, 31])

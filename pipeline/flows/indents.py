@@ -415,7 +415,7 @@ def _measure(img: Image, spec, opt, say, t0, held=None):
             # the imprints measured on the retrace too and their corners averaged where that is done, else moved back
             # by the lag; the map shown moved back by the lag
             if (other := _other_direction(img, imps, floor, spec)) is not None:
-                imps, both = pair_directions(imps, other, lag_px * px)
+                imps, both = pair_directions(imps, other, lag_px * px, px)
                 info["n_both_directions"] = both
                 say(f"{name}: {both} of {sum(m is not None for m in imps)} imprint(s) measured on the retrace too: "
                     "centres and corners the means of both scan directions")
