@@ -244,21 +244,18 @@ class CornerLevel:
         """The strips' median level (nm): how far the original surface lies off the map's zero."""
         return float(np.median(self.levels_nm)) if len(self.levels_nm) else 0.0
 
-    def below_far_field(self, noise_nm: float) -> bool:
-        """Whether the strips lie clearly under the map's zero: by more than 2 noise levels, ``CORNER_MIN_NM``
-        and twice their spread's standard error, on at least ``CORNER_MIN_STRIPS`` strips.
-
-        Only below: pile-up's tails raise the far field. The strips scatter by a few nm where nothing does
-        (what is left of cracks, the z loop's lag), and levelling to them costs the far field's line
-        offsets: on feedback-renderer seeds drawn without the z loop, a 1-3 nm threshold levelled maps whose
-        zero was right (seed 21: d +0.27 -> -1.10 %)."""
-        return self.weight(noise_nm) >= 0.5
-
     def weight(self, noise_nm: float) -> float:
-        """How far to level to the strips, 0-1: 0 where they lie less than ``1 - CORNER_RAMP`` times the threshold of
-        :meth:`below_far_field` under the map's zero, 1 beyond ``1 + CORNER_RAMP`` times it, linear between. A yes or
-        no at the threshold moved one map's area by 4.8 % and its depth by 2.4 % between draws of a whisper of noise
-        (unseen feedback seed 79: two strips, -12 and -35 nm, their mean 0.98-1.02 times the threshold)."""
+        """How far to level to the strips, 0-1: 0 where they lie less than ``1 - CORNER_RAMP`` times the threshold
+        under the map's zero, 1 beyond ``1 + CORNER_RAMP`` times it, linear between; 0 on fewer than
+        ``CORNER_MIN_STRIPS`` strips.
+
+        The threshold: 2 noise levels, ``CORNER_MIN_NM`` and twice the strips' spread's standard error, the largest.
+        Only below: pile-up's tails raise the far field. The strips scatter by a few nm where nothing does (what is
+        left of cracks, the z loop's lag), and levelling to them costs the far field's line offsets: on
+        feedback-renderer seeds drawn without the z loop, a 1-3 nm threshold levelled maps whose zero was right
+        (seed 21: d +0.27 -> -1.10 %). A yes or no at the threshold moved one map's area by 4.8 % and its depth by
+        2.4 % between draws of a whisper of noise (unseen feedback seed 79: two strips, -12 and -35 nm, their mean
+        0.98-1.02 times the threshold)."""
         m = len(self.levels_nm)
         if m < CORNER_MIN_STRIPS:
             return 0.0

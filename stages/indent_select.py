@@ -125,12 +125,6 @@ def clipped_floor(z_nm: np.ndarray) -> np.ndarray | None:
     return low if np.count_nonzero(low) >= MIN_CLIPPED_PX else None
 
 
-def clipped_floor_px(z_nm: np.ndarray) -> int:
-    """How many pixels :func:`clipped_floor` holds (0 without a clipped floor)."""
-    low = clipped_floor(z_nm)
-    return 0 if low is None else int(np.count_nonzero(low))
-
-
 def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = None,
                     size_window_um: tuple | None = None, floor_clipped: bool = False) -> list:
     """Imprints that count: measured, deeper than ``min_depth_nm`` (AFM), wider than 3 px,
@@ -143,7 +137,7 @@ def accept_imprints(imps: list, pixel_um: float, min_depth_nm: float | None = No
     flat-bottomed pit (:func:`_flat_bottomed`);
     nor a pit under ``LARGE_IMPRINT_PX`` that the four-facet model could not fit (the one grating pit of
     4.5 %); nor a pit whose contact area is far from that of the quadrilateral between its corners
-    (``AREA_RATIO_RANGE``). A ``floor_clipped`` map (:func:`clipped_floor_px`) is flat at its floor
+    (``AREA_RATIO_RANGE``). A ``floor_clipped`` map (:func:`clipped_floor`) is flat at its floor
     because the scanner could not go deeper: the flat-bottom test does not apply there.
     """
     out = [m for m in imps if m is not None and m.diameter_um > 3 * pixel_um]

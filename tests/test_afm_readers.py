@@ -435,7 +435,7 @@ def test_real_bruker_map_line_flatten_and_clipping_against_references():
     each row's line taken off. (The rounding to counts and digits scatters the lines' slopes by 0.003 nm, over
     2 % of this smooth map's 0.09 nm noise; the agreement allows for the rounding it finds.) Its lowest count
     occurs once in the reference: no clipped floor."""
-    from markcal.stages.indent_select import clipped_floor_px
+    from markcal.stages.indent_select import clipped_floor
     from markcal.stages.indent_unflatten import LineFlatten, detect_line_flatten
     path = _real("afm/bruker_nanoscope/full_multiple_images.txt")
     raw_ref = np.loadtxt(REAL / "afm/bruker_nanoscope/reference_raw.csv", delimiter=",")
@@ -444,7 +444,7 @@ def test_real_bruker_map_line_flatten_and_clipping_against_references():
     assert np.ptp(raw_ref.mean(axis=1)) > 100                      # counts: the lines' means differ widely
     assert detect_line_flatten(raw_ref) is None and detect_line_flatten(im.data) is None
     assert detect_line_flatten(conv_ref) == LineFlatten(axis=0, order=1, how="poly")
-    assert np.sum(raw_ref == raw_ref.min()) < 8 and clipped_floor_px(im.data) == 0
+    assert np.sum(raw_ref == raw_ref.min()) < 8 and clipped_floor(im.data) is None
     assert "resampled" not in im.meta
 
 

@@ -270,15 +270,16 @@ def test_missing_lines_filled_along_the_columns():
 def test_clipped_floor_only_where_heights_are_equal():
     """The Z range's end: eight or more pixels at exactly the lowest height. A noisy floor, or a pyramid's floor
     stored in integer steps of 0.2 nm (16 bits over 13 µm), has its lowest height on one or two pixels."""
-    from markcal.stages.indent_select import clipped_floor_px
+    from markcal.stages.indent_select import clipped_floor
     rng = np.random.default_rng(3)
     yy, xx = np.mgrid[0:64, 0:64]
     pyramid = -np.clip(800.0 - 25.0 * np.maximum(np.abs(xx - 32.3), np.abs(yy - 31.6)), 0, None)
     noisy = pyramid + rng.normal(0, 0.7, pyramid.shape)
-    assert clipped_floor_px(noisy) == 0
-    assert clipped_floor_px(np.round(noisy / 0.2) * 0.2) == 0
+    assert clipped_floor(noisy) is None
+    assert clipped_floor(np.round(noisy / 0.2) * 0.2) is None
     cut = np.maximum(noisy, -760.0)
-    assert clipped_floor_px(cut) == int(np.sum(noisy <= -760.0)) >= 8
+    low = clipped_floor(cut)
+    assert np.array_equal(low, noisy <= -760.0) and int(low.sum()) >= 8
 
 
 def _pyramid_in_pile_up(n=129, a=56.0, depth=800.0, noise=0.3, seed=0):
