@@ -799,4 +799,32 @@ MUTANTS_INDENTS = [
         "new": "    if False:\n",
         "tests": ["tests/test_scan_lag.py::test_pair_directions_refuses_a_retrace_that_disagrees"],
     },
+    {   # the whole map smoothed by OpenCV with the other reflection (dcb|abcd, OpenCV's default) (session 27)
+        "name": "smooth-reflect-101",
+        "file": "stages/cv_filters.py",
+        "old": '_BORDERS = {"reflect": cv2.BORDER_REFLECT, ',
+        "new": '_BORDERS = {"reflect": cv2.BORDER_REFLECT_101, ',
+        "tests": ["tests/test_cv_filters.py"],
+    },
+    {   # OpenCV's kernel radius from its own rule (about 3 sigma for float images), not scipy's truncation
+        "name": "smooth-kernel-3-sigma",
+        "file": "stages/cv_filters.py",
+        "old": "    k = 2 * radius + 1\n",
+        "new": "    k = 2 * int(3.0 * float(sigma) + 0.5) + 1\n",
+        "tests": ["tests/test_cv_filters.py"],
+    },
+    {   # a map the binned share calls filled levelled as a whole all the same (session 27)
+        "name": "level-map-shortcut-levels-whole",
+        "file": "stages/indent_level.py",
+        "old": "        return level_single(z_nm, pixel_um), True\n    lv = level_afm(z_nm, pixel_um)\n",
+        "new": "        return level_afm(z_nm, pixel_um), True\n    lv = level_afm(z_nm, pixel_um)\n",
+        "tests": ["tests/test_indent_single.py::test_level_map_tells_filled_maps_from_arrays"],
+    },
+    {   # only the first imprint found measured again after the level beyond the corners (session 27)
+        "name": "flow-again-first-only",
+        "file": "pipeline/flows/indents.py",
+        "old": "    found = sel.accept_imprints(imps, px, floor)\n",
+        "new": "    found = sel.accept_imprints(imps, px, floor)[:1]\n",
+        "tests": ["tests/test_indent_single.py::test_two_imprints_in_a_filled_map_both_measured"],
+    },
 ]

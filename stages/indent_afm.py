@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .cv_filters import gaussian
 from .indent_geometry import (Imprint, circle_fit, diagonals as _diagonals, lm_soft_l1, plane_moments,
                               planes_from_moments, robust_plane as _robust_plane)
 
@@ -29,7 +30,7 @@ def detect_pits(z_nm: np.ndarray, noise_nm: float, pixel_um: float, min_depth_nm
     list of (row, col, radius_px)
         Deepest point (px) and a radius estimate from the area below threshold.
     """
-    zs = ndimage.gaussian_filter(np.nan_to_num(z_nm), 1.0)
+    zs = gaussian(np.nan_to_num(z_nm), 1.0)
     thr = max(6 * noise_nm * 0.5, 0.5 * min_depth_nm)
     low = zs < -thr
     low = ndimage.binary_opening(low, structure=np.ones((2, 2), bool))
@@ -257,7 +258,7 @@ def measure_afm(z_nm: np.ndarray, pixel_um: float, row: float, col: float, radiu
         zr = zz - (ref[0] * x + ref[1] * y + ref[2])
         if coef is None:
             # orientation from the facet gradients (4-fold), centre from the deepest point
-            zs = ndimage.gaussian_filter(np.nan_to_num(zr), 0.8)
+            zs = gaussian(np.nan_to_num(zr), 0.8)
             gy, gx = np.gradient(zs)
             zmin = zs[rad < 1.2 * r_est].min()
             sel = (zs < 0.2 * zmin) & (zs > 0.85 * zmin) & (rad < 1.2 * r_est)
@@ -336,7 +337,7 @@ def _imprint_from_fit(f, pixel_um):
     u = xr * ua[0] + yr * ua[1]
     v = -xr * ua[1] + yr * ua[0]
     rho = np.abs(u) / a_half + np.abs(v) / b_half
-    zs = ndimage.gaussian_filter(np.nan_to_num(f["zr"]), 1.0)
+    zs = gaussian(np.nan_to_num(f["zr"]), 1.0)
     ring = (rho > 1.05) & (rho < 2.0) & np.isfinite(f["zr"])
     pile = float(zs[ring].max()) if ring.any() else float("nan")
     res = f["res"]

@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from .cv_filters import grey_close
 from .indent_level import in_cracks
 
 __all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "surface_beyond", "tongue_mask",
@@ -349,7 +350,7 @@ def fill_cracks(zr, noise, slope_px, depth_nm, radius_px=2.5):
     r = int(np.ceil(radius_px))
     yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
     disc = yy ** 2 + xx ** 2 <= radius_px ** 2 + 1e-9
-    closed = ndimage.grey_closing(zr, footprint=disc, mode="nearest")
+    closed = grey_close(zr, disc, "nearest")
     tol = max(5.0 * noise, 3.0)
     lift = closed - zr
     groove = ((lift > max(tol, slope_px)) & (np.abs(closed) <= tol)) \

@@ -9,15 +9,38 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
+from .cv_filters import dilate_square, gaussian, grey_close
 from .indent_geometry import robust_plane
-from .level import Levelled, _remove_scars, _row_nanmedian, noise_nm, poly_surface
+from .indent_micrograph_model import block_mean
+from .level import Levelled, _remove_scars, _row_nanmedian, level_afm, noise_nm, poly_surface
 
-__all__ = ["CornerLevel", "corner_level", "in_cracks", "level_single"]
+__all__ = ["CornerLevel", "corner_level", "in_cracks", "level_map", "level_single"]
 
 TRIM_SPREADS = 3.0          # a round's surface refitted without the far-field pixels this many spreads off it
 RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above which its bow is fitted first
+#: share of the map :func:`markcal.stages.level.level_afm` masks as features above which an imprint fills the field
+FILLED_SHARE = 0.3
+#: the same share on the map binned 2 x 2 above which the full-size levelling is not needed to tell. Measured
+#: (session 27): maps an imprint fills (feedback 1-60, ruled 1-40, ours 2000-2019, the real grating and circles)
+#: 0.57-1.00 full size, 0.62-0.99 binned; arrays (ours, rounded) and the real maps of flat samples 0.00-0.15 full
+#: size, 0.00-0.25 binned
+FILLED_BINNED_SHARE = 0.5
+
+
+def level_map(z_nm: np.ndarray, pixel_um: float) -> tuple[Levelled, bool]:
+    """Level an AFM map: :func:`markcal.stages.level.level_afm`, or :func:`level_single` where an imprint fills
+    the field (``FILLED_SHARE`` of it masked as features). Returns the levelled map and whether it was filled.
+
+    The share is first read on the map binned 2 x 2 (a quarter of the time); only where that does not tell
+    clearly is the map levelled full size to decide (0.3 s saved on a 1024 x 1024 map an imprint fills).
+    """
+    if level_afm(block_mean(z_nm, 2), 2 * pixel_um).mask.mean() > FILLED_BINNED_SHARE:
+        return level_single(z_nm, pixel_um), True
+    lv = level_afm(z_nm, pixel_um)
+    if lv.mask.mean() > FILLED_SHARE:
+        return level_single(z_nm, pixel_um), True
+    return lv, False
 
 
 def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bool = True) -> Levelled:
@@ -74,9 +97,9 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bo
         if it == 0:
             feat, off0 = _first_features(z, keep, valid, sigma)
         else:
-            zs = ndimage.gaussian_filter(z, 1.0)
+            zs = gaussian(z, 1.0)
             # grown by 3 px: a 7 x 7 square (separable: a maximum filter is the same dilation, three times faster)
-            feat = ndimage.maximum_filter(np.abs(zs - np.median(zs[keep])) > 5 * sigma, size=7, mode="constant")
+            feat = dilate_square(np.abs(zs - np.median(zs[keep])) > 5 * sigma, 7)
         prev, keep = keep, valid & ~feat
         if keep.sum() < 0.02 * valid.sum():
             # nearly all masked: the first round's ring, later the last round's far field (a bow fitted to
@@ -169,8 +192,8 @@ def _first_features(z, keep, valid, sigma):
     thr = max(5 * sigma, 20.0)
     found = []
     for off in (np.zeros(z.shape[0]), _side_strip_offsets(z, valid)):
-        zs = ndimage.gaussian_filter(z - off[:, None], 1.0)
-        found.append((ndimage.maximum_filter(np.abs(zs - np.median(zs[keep])) > thr, size=7, mode="constant"), off))
+        zs = gaussian(z - off[:, None], 1.0)
+        found.append((dilate_square(np.abs(zs - np.median(zs[keep])) > thr, 7), off))
     return min(found, key=lambda f: int(f[0].sum()))
 
 
@@ -268,7 +291,8 @@ def in_cracks(z_nm: np.ndarray, sigma_nm: float) -> np.ndarray:
     """Pixels of ``z_nm`` (a window of a levelled map, NaN where not measured) in a narrow groove, a radial crack:
     more than ``CRACK_NOISE`` noise levels and ``CRACK_MIN_NM`` under a grey closing ``CRACK_CLOSING_PX`` wide."""
     zf = np.where(np.isfinite(z_nm), z_nm, np.nanmedian(z_nm))
-    return ndimage.grey_closing(zf, size=CRACK_CLOSING_PX) - zf > max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)
+    closed = grey_close(zf, np.ones((CRACK_CLOSING_PX, CRACK_CLOSING_PX), bool))
+    return closed - zf > max(CRACK_NOISE * sigma_nm, CRACK_MIN_NM)
 
 
 def _strip_level(v: np.ndarray, sigma: float) -> float:

@@ -12,9 +12,8 @@ import dataclasses
 
 import numpy as np
 
-from scipy import ndimage
-
 from . import detect
+from .cv_filters import gaussian
 from .indent_geometry import Imprint
 
 __all__ = ["LARGE_IMPRINT_PX", "rounding_px", "merge_afm", "accept_imprints", "dedupe", "tolerance_flags",
@@ -211,7 +210,7 @@ def raised_and_sunk_um3(z_nm: np.ndarray, noise_nm: float, pixel_um: float) -> t
     Imprints are pits: measured on four renderers (single imprints and arrays, 39 maps) what stands up (pile-up)
     is 0.04-0.44 of what lies down; with the heights negated, 2.3-25 times it.
     """
-    zs = ndimage.gaussian_filter(np.nan_to_num(np.asarray(z_nm, np.float32)), 1.0)
+    zs = gaussian(np.nan_to_num(np.asarray(z_nm, np.float32)), 1.0)
     t = 5.0 * noise_nm
     up, down = zs[zs > t], zs[zs < -t]
     scale = pixel_um * pixel_um * 1e-3

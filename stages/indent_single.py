@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage
 
+from .cv_filters import binary_dilate, gaussian
 from .indent_corners import (VALLEY_END_SLOPES, bilinear, corner_on_ray, fill_cracks, region_pts, tongue_mask,
                              unless_crack)
 from .indent_edges import edge_frame, edges_past_chips, shoelace
@@ -306,7 +307,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     fin = np.isfinite(zz)
     zz0 = np.where(fin, zz, 0.0)
     noise = max(float(noise_nm_), 0.05)
-    zs = ndimage.gaussian_filter(zz0, 1.0)
+    zs = gaussian(zz0, 1.0)
     thr = max(5 * noise, 2.0)
     lab, n = ndimage.label(zs < -thr)
     if n == 0:
@@ -322,8 +323,8 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     grow = max(3, int(0.15 * np.sqrt(pit.sum())))
     # pile-up beside the edges can cover half the far field of an imprint that fills the map: left out
     # with everything standing above the surface (the map is levelled), grown by 3 px
-    outside = fin & ~ndimage.binary_dilation(pit, iterations=grow) & (lab == 0)
-    far = outside & ~ndimage.binary_dilation(zs > thr, iterations=3)
+    outside = fin & ~binary_dilate(pit, grow) & (lab == 0)
+    far = outside & ~binary_dilate(zs > thr, 3)
     if far.sum() >= 30:
         pl = robust_plane(cc[far].astype(float), rr[far].astype(float), zz0[far], n_iter=6)
         if not _surrounds(rr[far], cc[far], rr[pit].mean(), cc[pit].mean()):
@@ -338,7 +339,7 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     else:
         return None
     zr = zz0 - (pl[0] * cc + pl[1] * rr + pl[2])
-    zs = ndimage.gaussian_filter(zr, 1.0)
+    zs = gaussian(zr, 1.0)
     fr, fc, fz = _floor(np.where(fin, zr, np.nan), zs, pit, noise)
     fr, fc = fr + r0, fc + c0                                          # window -> map rows, cols
     depth = -fz
@@ -355,10 +356,10 @@ def measure_single(z_nm: np.ndarray, pixel_um: float, noise_nm_: float, row: flo
     # radial cracks from the corners (glass) would carry the boundary and the corners out along them
     zr, groove = fill_cracks(zr, noise, slope_px, depth)
     if groove.any():
-        zs = ndimage.gaussian_filter(zr, 1.0)
-    zb = ndimage.gaussian_filter(zr, 0.7)
+        zs = gaussian(zr, 1.0)
+    zb = gaussian(zr, 0.7)
     level = -max(3.0 * noise, 1.0, min(2.5 * slope_px, 0.15 * depth))
-    zb = np.where(ndimage.binary_dilation(pit, iterations=4), zb, abs(level))   # only this pit's boundary
+    zb = np.where(binary_dilate(pit, 4), zb, abs(level))   # only this pit's boundary
     cont, cut = _boundary(zb, level, np.array([fr, fc]) - [r0, c0])
     if cont is None:
         return None

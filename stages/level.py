@@ -15,6 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .cv_filters import dilate_square, gaussian, max_line, min_line
+
 __all__ = ["Levelled", "level_afm", "poly_surface", "noise_nm", "feature_mask"]
 
 
@@ -111,16 +113,12 @@ def _row_medians(z, keep):
 
 def _open1d(a, size, axis):
     """Binary opening with a line of ``size`` pixels along ``axis`` (fast 1-D filters)."""
-    u = a.astype(np.uint8)
-    u = ndimage.minimum_filter1d(u, size, axis=axis, mode="constant", cval=0)
-    return ndimage.maximum_filter1d(u, size, axis=axis, mode="constant", cval=0).astype(bool)
+    return max_line(min_line(a, size, axis), size, axis).astype(bool)
 
 
 def _close1d(a, size, axis):
     """Binary closing with a line of ``size`` pixels along ``axis``."""
-    u = a.astype(np.uint8)
-    u = ndimage.maximum_filter1d(u, size, axis=axis, mode="constant", cval=0)
-    return ndimage.minimum_filter1d(u, size, axis=axis, mode="constant", cval=1).astype(bool)
+    return min_line(max_line(a, size, axis), size, axis, cval=1).astype(bool)
 
 
 def _remove_scars(z, keep, sigma, k=4.0, min_len=8, max_width=2):
@@ -178,7 +176,7 @@ def _remove_scars(z, keep, sigma, k=4.0, min_len=8, max_width=2):
 def feature_mask(z, sigma, min_area_px: int = 6, grow_px: int = 3, k: float = 5.0,
                  min_nm: float = 2.0) -> np.ndarray:
     """Pits and particles: smoothed heights beyond ``k`` sigma, streaks under 7 rows opened away, grown."""
-    zs = ndimage.gaussian_filter(np.nan_to_num(z), 1.0)
+    zs = gaussian(np.nan_to_num(z), 1.0)
     thr = max(k * sigma * 0.5, min_nm)          # smoothing by sigma = 1 px halves white noise
     bad = np.abs(zs) > thr
     # streaks along the rows (scars, left-over line offsets) are a few rows tall: open them away
@@ -192,7 +190,7 @@ def feature_mask(z, sigma, min_area_px: int = 6, grow_px: int = 3, k: float = 5.
         bad[small[lab]] = False
     g = 2 * grow_px + 1
     # dilation by a g x g square = a separable maximum filter (zero outside), several times faster
-    return ndimage.maximum_filter(bad.view(np.uint8), size=g, mode="constant", cval=0).astype(bool)
+    return dilate_square(bad, g)
 
 
 def level_afm(z_nm: np.ndarray, pixel_um: float = 1.0, n_iter: int = 3, bow_degree: int = 3) -> Levelled:

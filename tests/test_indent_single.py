@@ -6,16 +6,21 @@ offsets, scars and noise; its truth comes from the geometry, not from the measur
 Tolerances are the issue's goals: mean diagonal within 0.5 % (or 1 px), depth 1 %, area 1 %,
 corners 1.5 px.
 """
+import dataclasses
 import json
 import os
 
 import numpy as np
 import pytest
 
+from markcal.fixtures.indent_afm_feedback import render_feedback
+from markcal.fixtures.indent_maps import AfmOptions, render_afm
 from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
 from markcal.pipeline.cli import main
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
+from markcal.stages.indent_level import level_map, level_single
 from markcal.stages.indent_single import hardness_hv
+from markcal.stages.level import level_afm
 
 
 def _ibw(tmp_path, r, name="map.ibw"):
@@ -50,6 +55,40 @@ def test_single_imprint_against_truth(tmp_path, seed, margin):
     # HV = 0.1891 F / d^2, F in N, d in mm: 500 mN on d µm
     assert tab["hv"][0] == pytest.approx(0.1891 * 0.5 / (d * 1e-3) ** 2, rel=1e-12)
     assert np.isfinite(tab["apex_depth_nm"][0])
+
+
+@pytest.mark.parametrize("seed", [1, 3])
+def test_two_imprints_in_a_filled_map_both_measured(tmp_path, seed):
+    """A second, smaller imprint beside one that fills the field: both found and both measured again after the
+    level beyond the corners (only the pits within the imprints found first are measured again)."""
+    r = render_single(seed, SingleOptions(fill=0.55))
+    px, n = r.pixel_um, r.data.shape[0]
+    c_um, half_um = 0.13 * n * px, 0.06 * n * px              # a pyramid (diagonals along the axes) in a corner
+    y, x = np.mgrid[0:n, 0:n] * px
+    depth_nm = 0.1 * 2e3 * half_um
+    small = -depth_nm * np.clip(1 - (np.abs(x - c_um) + np.abs(y - c_um)) / half_um, 0, None)
+    res = run_indents([_ibw(tmp_path, dataclasses.replace(r, data=r.data + small))], None, IndentsOptions())
+    tab = res.indents
+    assert len(tab["id"]) == 2
+    big = r.truth["imprints"][0]
+    for x_um, y_um, d_um in ((big["x_um"], big["y_um"], big["d_um"]), (c_um, c_um, 2 * half_um)):
+        k = int(np.argmin(np.hypot(tab["x_um"] - x_um, tab["y_um"] - y_um)))
+        assert np.hypot(tab["x_um"][k] - x_um, tab["y_um"][k] - y_um) <= px
+        assert abs(tab["d_um"][k] - d_um) <= max(0.005 * d_um, px)
+
+
+@pytest.mark.parametrize("seed", [11, 141])
+def test_level_map_tells_filled_maps_from_arrays(seed):
+    """An imprint filling 89 % or 40 % of the field (feedback renderer) is levelled from the far field only, an
+    array of 25 as a whole; the binned map that decides first must decide as the full one."""
+    fb = render_feedback(seed)
+    lv, filled = level_map(fb.height_nm, fb.pixel_um)
+    assert filled
+    assert np.array_equal(lv.z_nm, level_single(fb.height_nm, fb.pixel_um).z_nm, equal_nan=True)
+    arr = render_afm(seed, AfmOptions(size_px=256))
+    lv, filled = level_map(arr.data, arr.pixel_um)
+    assert not filled
+    assert np.array_equal(lv.z_nm, level_afm(arr.data, arr.pixel_um).z_nm, equal_nan=True)
 
 
 @pytest.mark.parametrize("seed,crack_nm", [(2001, 30.0), (2003, 300.0)])
