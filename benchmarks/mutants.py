@@ -242,7 +242,7 @@ MUTANTS = [
     M("detect-ring-radius-sign", "sign", "stages/detect.py",
       "t = rho - r * (1 + m)", "t = rho - r * (1 - m)", "detect"),
     M("detect-gradient-axis-swap", "axis-swap", "stages/detect.py",
-      "f = b + a * g + gu * du + gv * dv", "f = b + a * g + gu * dv + gv * du", "detect"),
+      "f[i] = b + a * g + gu * du + gv * dv", "f[i] = b + a * g + gu * dv + gv * du", "detect"),
     # --- servo metrics --------------------------------------------------------------------------
     M("servo-std-ddof", "unit-factor", "stages/servo_sim.py",
       "return float(np.mean(np.abs(e_um))), float(np.std(e_um))",
@@ -275,7 +275,7 @@ HOLDOUT = [
     M("h-galvo-forward-x-height", "dropped-term", "stages/galvo.py",
       "x = w * np.tan(theta_x_rad)", "x = d_mm * np.tan(theta_x_rad)", "galvo"),
     M("h-rbf-mse-goal-off", "off-by-half-pixel", "stages/rbf.py",
-      "if mse[-1] <= mse_goal:", "if mse[-1] < 0.5 * mse_goal:", "rbf"),
+      "while m < steps and mse[m] > mse_goal:", "while m < steps and mse[m] > 0.5 * mse_goal:", "rbf"),
     M("h-pm-straightness-pairs", "axis-swap", "stages/pm_model.py",
       "K_PAIRS = ((1, 0), (2, 0), (0, 1), (2, 1), (0, 2), (1, 2))",
       "K_PAIRS = ((0, 1), (2, 0), (1, 0), (2, 1), (0, 2), (1, 2))", "pm"),
@@ -416,9 +416,6 @@ WEAK = {
                                         "analytic derivatives (session 18) the 2x level converges and the corner "
                                         "refit works at full resolution, so OM seeds 3100-3139 move by 0.1-0.65 px "
                                         "(3119: +0.52 -> +0.58 px), inside the 1 px goal and the test's 0.8 px",
-    "detect-gradient-axis-swap": "background gradient terms crossed: ring centre RMS 3.6 -> 5.0 µm, max 12.4 -> "
-                                 "17.7 µm (seed 101), inside the 1.5x limits of tests/test_ring_refinement.py; "
-                                 "a render with a strong intensity gradient would show it",
 }
 
 
