@@ -239,7 +239,7 @@ MUTANTS_INDENTS = [
     },
     {   # a line-flattened scan measured as it is, the lines' fits not taken again from the far field (session 15)
         "name": "flow-line-flatten-left-in",
-        "file": "pipeline/flows/indents.py",
+        "file": "pipeline/flows/indents_afm.py",
         "old": "        heights = undone.z_nm\n",
         "new": "        pass\n",
         "tests": ["tests/test_independent_renders.py::test_single_ruled_imprint_flattened_line_by_line"],
@@ -340,7 +340,7 @@ MUTANTS_INDENTS = [
     },
     {   # a map whose features stand up measured as if its heights were right (session 14)
         "name": "flow-inverted-heights-measured",
-        "file": "pipeline/flows/indents.py",
+        "file": "pipeline/flows/indents_afm.py",
         "old": "    if up <= down:\n        return\n",
         "new": "    if True:\n        return\n",
         "tests": ["tests/test_independent_renders.py::test_inverted_heights_are_refused"],
@@ -764,7 +764,7 @@ MUTANTS_INDENTS = [
     },
     {   # the trace's imprints moved back by the whole map's lag alone again, the retrace not measured (session 26)
         "name": "lag-trace-only",
-        "file": "pipeline/flows/indents.py",
+        "file": "pipeline/flows/indents_afm.py",
         "old": "    if (spec is not None or img.other_direction is None or img.data.size > BOTH_DIRECTIONS_MAX_PIXELS\n",
         "new": "    if (True or img.other_direction is None or img.data.size > BOTH_DIRECTIONS_MAX_PIXELS\n",
         "tests": ["tests/test_scan_lag.py::test_feedback_render_corners_from_both_scan_directions"],
@@ -822,7 +822,7 @@ MUTANTS_INDENTS = [
     },
     {   # only the first imprint found measured again after the level beyond the corners (session 27)
         "name": "flow-again-first-only",
-        "file": "pipeline/flows/indents.py",
+        "file": "pipeline/flows/indents_afm.py",
         "old": "    found = sel.accept_imprints(imps, px, floor)\n",
         "new": "    found = sel.accept_imprints(imps, px, floor)[:1]\n",
         "tests": ["tests/test_indent_single.py::test_two_imprints_in_a_filled_map_both_measured"],
