@@ -35,7 +35,7 @@ def level_map(z_nm: np.ndarray, pixel_um: float) -> tuple[Levelled, bool]:
     The share is first read on the map binned 2 x 2 (a quarter of the time); only where that does not tell
     clearly is the map levelled full size to decide (0.3 s saved on a 1024 x 1024 map an imprint fills).
     """
-    if level_afm(block_mean(z_nm, 2), 2 * pixel_um).mask.mean() > FILLED_BINNED_SHARE:
+    if min(z_nm.shape) >= 16 and level_afm(block_mean(z_nm, 2), 2 * pixel_um).mask.mean() > FILLED_BINNED_SHARE:
         return level_single(z_nm, pixel_um), True
     lv = level_afm(z_nm, pixel_um)
     if lv.mask.mean() > FILLED_SHARE:

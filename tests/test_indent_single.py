@@ -91,6 +91,14 @@ def test_level_map_tells_filled_maps_from_arrays(seed):
     assert np.array_equal(lv.z_nm, level_afm(arr.data, arr.pixel_um).z_nm, equal_nan=True)
 
 
+def test_level_map_of_maps_too_small_to_bin():
+    """Under 16 pixels a side the binned share is not read (a 100 x 1 map binned is empty): levelled as a whole."""
+    for shape in ((100, 1), (9, 13)):
+        z = np.random.default_rng(0).normal(size=shape)
+        lv, filled = level_map(z, 0.1)
+        assert not filled and lv.z_nm.shape == shape and np.isfinite(lv.z_nm).all()
+
+
 @pytest.mark.parametrize("seed,crack_nm", [(2001, 30.0), (2003, 300.0)])
 def test_radial_cracks_do_not_lengthen_the_diagonals(tmp_path, seed, crack_nm):
     """Cracks from all four corners (grooves 1-2 px wide, 30-300 nm deep as the tip sees them, running
