@@ -813,12 +813,13 @@ MUTANTS_INDENTS = [
         "new": "    k = 2 * int(3.0 * float(sigma) + 0.5) + 1\n",
         "tests": ["tests/test_cv_filters.py"],
     },
-    {   # a map the binned share calls filled levelled as a whole all the same (session 27)
-        "name": "level-map-shortcut-levels-whole",
+    {   # filled told by the whole mask's share, as before session 27 (a dense array levelled as one imprint)
+        "name": "level-map-whole-mask-share",
         "file": "stages/indent_level.py",
-        "old": "        return level_single(z_nm, pixel_um), True\n    lv = level_afm(z_nm, pixel_um)\n",
-        "new": "        return level_afm(z_nm, pixel_um), True\n    lv = level_afm(z_nm, pixel_um)\n",
-        "tests": ["tests/test_indent_single.py::test_level_map_tells_filled_maps_from_arrays"],
+        "old": "    if _largest_share(lv) > FILLED_SHARE:\n",
+        "new": "    if lv.mask.mean() > FILLED_SHARE:\n",
+        "tests": ["tests/test_indent_single.py::test_level_map_tells_filled_maps_from_arrays",
+                  "tests/test_indent_single.py::test_dense_array_measured_as_an_array"],
     },
     {   # only the first imprint found measured again after the level beyond the corners (session 27)
         "name": "flow-again-first-only",
