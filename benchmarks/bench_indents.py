@@ -2,7 +2,8 @@
 the real 1.7 Mpx SEM image; wall and CPU seconds, load average) and accuracy on unseen renders.
 
 Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4] [--micro-seeds 10]
-       [--rounded-seeds 8] [--single-seeds 10] [--om-hard-seeds 10] [--om-speed-seeds 12] [--*-first-seed N]
+       [--rounded-seeds 8] [--single-seeds 10] [--om-hard-seeds 10] [--om-speed-seeds 12] [--dense-seeds 2]
+       [--*-first-seed N]
 
 Speed: read the float32 TIFF -> level -> detect -> measure -> index and register,
 in memory (``measure_file``), median of ``--runs``. Accuracy: seeds 1000+ (never
@@ -90,6 +91,8 @@ def main(argv=None):
     ap.add_argument("--om-hard-reference-um", type=float, default=None,
                     help="hard OM arrays: measure with --optics-from a reference array of this size (seed + 100, "
                          "same optics)")
+    ap.add_argument("--dense-seeds", type=int, default=0,
+                    help="dense AFM arrays (5 x 5 to 12 x 12, imprints 1.5-4 diameters apart) on seeds 1..N")
     ap.add_argument("--om-speed-seeds", type=int, default=0,
                     help="time the 1 Mpx hard OM case of 1 µm imprints (Airy NA 0.9) on this many seeds from 5700")
     a = ap.parse_args(argv)
@@ -112,6 +115,8 @@ def main(argv=None):
         _afm_sweep(a, tmp)
     if a.om_seeds:
         _om_sweep(a, tmp)
+    if a.dense_seeds:
+        _dense_sweep(a, tmp)
     if a.om_hard_seeds:
         _om_hard_sweep(a, tmp)
 
@@ -340,6 +345,28 @@ def _afm_sweep(a, tmp):
           f"depth RMS {np.sqrt(np.mean(e[:, 2] ** 2)):.2f} nm "
           "(goal 2)")
 
+
+
+#: dense arrays: (rows = cols, pitch µm, nominal diameter µm), the field 6 µm wider than the array, 512 x 512
+DENSE_ARRAYS = ((5, 8.0, 3.0), (7, 6.0, 3.0), (8, 5.0, 3.0), (10, 4.5, 3.0), (12, 3.5, 2.0))
+
+
+def _dense_sweep(a, tmp):
+    """AFM arrays whose imprints stand 1.5-4 diameters apart (session 27: until then those masking over 30 % of the
+    field were levelled as one imprint)."""
+    print(f"\ndense AFM arrays, seeds 1..{a.dense_seeds}, 512 x 512; goals: centre RMS 15 nm, diameter RMS 20 nm")
+    print("rows pitch_um d_um seed  masked  n missed false  centre_rms_nm  diam_rms_nm  diam_max_nm  depth_rms_nm")
+    from markcal.stages.level import level_afm
+    for rows, pitch, nominal in DENSE_ARRAYS:
+        for seed in range(1, a.dense_seeds + 1):
+            r = render_afm(seed, AfmOptions(rows=rows, cols=rows, pitch_um=pitch, nominal_um=nominal,
+                                            field_um=rows * pitch + 6.0, size_px=512))
+            path, spec = _files(tmp, r)
+            e, missed, false = _errors(run_indents([path], spec).indents, r.truth)
+            masked = level_afm(r.data, r.pixel_um).mask.mean()
+            print(f"{rows:4d} {pitch:7.1f} {nominal:4.1f} {seed:4d}  {masked:6.2f} {len(e):3d} {missed:6d} {false:5d} "
+                  f"{1000 * np.sqrt(np.mean(e[:, 0] ** 2)):14.1f} {1000 * np.sqrt(np.mean(e[:, 1] ** 2)):12.1f} "
+                  f"{1000 * np.abs(e[:, 1]).max():12.1f} {np.sqrt(np.mean(e[:, 2] ** 2)):13.2f}", flush=True)
 
 
 def _om_sweep(a, tmp):
