@@ -22,7 +22,7 @@ RING_BOW_MIN_NM = 10.0      # the ring's robust spread about its plane above whi
 #: share of the map that the largest feature :func:`markcal.stages.level.level_afm` masks covers, above which an
 #: imprint fills the field. Measured (session 27): maps of one imprint (feedback 1-40, ruled 1-20, ours 2000-2009)
 #: 0.96-0.98; the real grating, circles and Bruker maps 1.00, 0.99 and 0.41; arrays 0.01, dense ones too (3 µm
-#: imprints at a 3.5-8 µm pitch), though those mask 13-45 % of the field in all. Until session 27 the whole mask's
+#: imprints at a 4.5-8 µm pitch, 2 µm at 3.5 µm), though those mask 13-45 % of the field in all. Until session 27 the whole mask's
 #: share decided, and the dense arrays over 0.3 were levelled as one imprint: centres 6-28 nm RMS, diameters 7-32 nm
 #: RMS, against 1-4 nm for those under it
 FILLED_SHARE = 0.3
@@ -103,7 +103,7 @@ def level_single(z_nm: np.ndarray, pixel_um: float, n_iter: int = 4, fit_bow: bo
             feat, off0 = _first_features(z, keep, valid, sigma)
         else:
             zs = gaussian(z, 1.0)
-            # grown by 3 px: a 7 x 7 square (separable: a maximum filter is the same dilation, three times faster)
+            # grown by 3 px: a 7 x 7 square
             feat = dilate_square(np.abs(zs - np.median(zs[keep])) > 5 * sigma, 7)
         prev, keep = keep, valid & ~feat
         if keep.sum() < 0.02 * valid.sum():
