@@ -819,7 +819,7 @@ MUTANTS_INDENTS = [
         "old": "    if _largest_share(lv) > FILLED_SHARE:\n",
         "new": "    if lv.mask.mean() > FILLED_SHARE:\n",
         "tests": ["tests/test_indent_single.py::test_level_map_tells_filled_maps_from_arrays",
-                  "tests/test_indent_single.py::test_dense_array_measured_as_an_array"],
+                  "tests/test_indents.py::test_dense_array_measured_as_an_array"],
     },
     {   # only the first imprint found measured again after the level beyond the corners (session 27)
         "name": "flow-again-first-only",

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from markcal.fixtures.indent_afm_feedback import render_feedback
-from markcal.fixtures.indent_maps import AfmOptions, array_toml, render_afm, tiff_bytes
+from markcal.fixtures.indent_maps import AfmOptions, render_afm
 from markcal.fixtures.indent_single import SingleOptions, render_single, single_ibw
 from markcal.pipeline.cli import main
-from markcal.pipeline.flows.indents import IndentsOptions, read_array_spec, run_indents
+from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.indent_level import level_map, level_single
 from markcal.stages.indent_single import hardness_hv
 from markcal.stages.level import level_afm
@@ -99,27 +99,6 @@ def test_level_map_of_tiny_maps():
         z = np.random.default_rng(0).normal(size=shape)
         lv, filled = level_map(z, 0.1)
         assert not filled and lv.z_nm.shape == shape and np.isfinite(lv.z_nm).all()
-
-
-def test_dense_array_measured_as_an_array(tmp_path):
-    """12 x 12 imprints of 2 µm at a 3.5 µm pitch (31 % of the field masked): the AFM array goals, centres 15 nm RMS
-    and diameters 20 nm RMS (levelled as one imprint before session 27: 13.3 and 20.5 nm, max 80 nm)."""
-    r = render_afm(1, AfmOptions(rows=12, cols=12, pitch_um=3.5, nominal_um=2.0, field_um=48.0, size_px=512))
-    t = r.truth
-    path = os.path.join(str(tmp_path), "dense.tif")
-    with open(path, "wb") as fh:
-        fh.write(tiff_bytes(r.data, r.pixel_um, zunit="nm"))
-    spec = os.path.join(str(tmp_path), "array.toml")
-    with open(spec, "w") as fh:
-        fh.write(array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
-    tab = run_indents([path], read_array_spec(spec)).indents
-    assert len(tab["id"]) == 144
-    txy = np.array([[i["x_um"], i["y_um"]] for i in t["imprints"]])
-    near = [int(np.argmin(np.hypot(*(txy - [x, y]).T))) for x, y in zip(tab["x_um"], tab["y_um"])]
-    centre_nm = 1e3 * np.hypot(*(txy[near] - np.column_stack([tab["x_um"], tab["y_um"]])).T)
-    diam_nm = 1e3 * (tab["diameter_um"] - np.array([t["imprints"][k]["diameter_um"] for k in near]))
-    assert np.sqrt(np.mean(centre_nm ** 2)) <= 15.0
-    assert np.sqrt(np.mean(diam_nm ** 2)) <= 20.0
 
 
 @pytest.mark.parametrize("seed,crack_nm", [(2001, 30.0), (2003, 300.0)])
