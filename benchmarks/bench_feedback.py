@@ -10,6 +10,8 @@ centre, orientation_deg (direction of diagonal 1), diag1_um and diag2_um, with t
 assignment to the true corners. border% is the depth against a border-plane reading of the map
 (``border_plane_depth_nm``; the issue's real-map goal: within 10 %). ``--ablate`` switches one artefact family off (chipping,
 feedback, particles, faults, scanner; ``all``: every family off, the tip stays). run_s is the wall time of run_indents.
+With ``--format ibw`` the last line compares the z loop's lag the flow took out (summary.json ``scan_lag_px``) with
+the renderer's ramp lag.
 """
 from __future__ import annotations
 
@@ -83,7 +85,7 @@ def main(argv=None):
     print(f"goals: d {D_GOAL_PCT} % or {D_GOAL_PX:g} px (larger), depth {DEPTH_GOAL_PCT:g} %, "
           f"area {AREA_GOAL_PCT:g} %, corners {CORNER_GOAL_PX} px")
     print("seed pix_nm   d_um fill recov  d_err%   d_px  depth%   area%  corner_px border%  n  render_s  run_s  fails")
-    rows, ok, failed, border = [], [], 0, []
+    rows, ok, failed, border, lag_err = [], [], 0, [], []
     with tempfile.TemporaryDirectory(prefix="bench_feedback_") as tmp:
         for s in seeds:
             t0 = time.perf_counter()
@@ -107,6 +109,8 @@ def main(argv=None):
                                        np.asarray(t["y_um"]) - tr["centre_um"][1])))
             e = errors(t, k, tr)
             border.append(100 * (float(t["depth_nm"][k]) / border_plane_depth_nm(r.height_nm) - 1))
+            if res.summary.get("scan_lag_px") is not None and tr["feedback"]["enabled"]:
+                lag_err.append(res.summary["scan_lag_px"] - tr["feedback"]["lag_px"])
             flags = within(e, tr)
             rows.append(e)
             ok.append(flags)
@@ -130,6 +134,10 @@ def main(argv=None):
         b = np.abs(border)
         print(f"depth against a border-plane reading: within 10 % on {100 * np.mean(b <= 10):.0f} % of seeds, "
               f"max {b.max():.2f} %, median {np.median(border):+.2f} %")
+    if lag_err:
+        e = np.abs(lag_err)
+        print(f"z loop lag against the renderer's ramp lag ({len(e)} maps): within 0.3 px on "
+              f"{100 * np.mean(e <= 0.3):.0f} %, median |error| {np.median(e):.2f} px, max {e.max():.2f} px")
 
 
 if __name__ == "__main__":
