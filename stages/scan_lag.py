@@ -63,16 +63,16 @@ def _slopes(z):
     return np.clip(g, -lim, lim) if lim > 0 else g
 
 
-def _crossings(z, level):
-    """Where each row crosses ``level`` between two samples: rows, sub-pixel columns, direction (+1 rising,
-    -1 falling, along +x) and slope magnitude (nm per px, the central differences interpolated to the crossing)."""
+def _crossings(z, g, level):
+    """Where each row of ``z`` crosses ``level`` between two samples: rows, sub-pixel columns, direction (+1
+    rising, -1 falling, along +x) and slope magnitude (nm per px: ``g``, the central differences along x,
+    interpolated to the crossing)."""
     a, b = z[:, :-1], z[:, 1:]
     with np.errstate(invalid="ignore"):
         hit = ((a < level) != (b < level)) & np.isfinite(a) & np.isfinite(b)
     r, c = np.nonzero(hit)
     za, zb = z[r, c], z[r, c + 1]
     x = c + (za - level) / (za - zb)
-    g = np.gradient(z, axis=1)
     t = x - c
     slope = np.abs((1 - t) * g[r, c] + t * g[r, c + 1])
     return r, x, np.where(zb > za, 1, -1), slope
@@ -98,10 +98,11 @@ def crossing_offsets(z_nm, other_nm, n_levels: int = CROSSING_LEVELS,
     mid, deep = np.percentile(both, [50.0, 0.1])
     fr = (np.arange(n_levels) + 1.0) / (n_levels + 1.0)
     span = a.shape[1] + 4 * LAG_MAX_PX + 8.0               # keys: a row and a direction per span
+    ga, gb = np.gradient(a, axis=1), np.gradient(b, axis=1)
     out = []
     for level in mid + fr * (deep - mid):
-        ra, xa, da, sa = _crossings(a, level)
-        rb, xb, db, sb = _crossings(b, level)
+        ra, xa, da, sa = _crossings(a, ga, level)
+        rb, xb, db, sb = _crossings(b, gb, level)
         if not len(ra) or not len(rb):
             continue
         # one sorted key per crossing of the other channel: row and direction first, then x
