@@ -642,6 +642,13 @@ MUTANTS_INDENTS = [
         "new": "    return ScanLag(lag_px=offset, correlation=float(vals[best] / norm))\n",
         "tests": [_LAG],
     },
+    {   # every crossing of an outline counted, not the outermost: chips' loops inside it pull the radius in (session 28)
+        "name": "lag-outline-innermost",
+        "file": "stages/scan_lag.py",
+        "old": "        t = np.where(hit, t, -np.inf).max(axis=1)\n",
+        "new": "        t = -np.where(hit, -t, -np.inf).max(axis=1)\n",
+        "tests": ["tests/test_scan_lag.py::test_exit_weighted_outline_counts_each_direction_where_it_leaves"],
+    },
     {   # the lag from the slopes' correlation maximum, as before session 28
         "name": "scanlag-correlation-offset",
         "file": "stages/scan_lag.py",
@@ -669,18 +676,18 @@ MUTANTS_INDENTS = [
     {   # the area the trace's alone (session 28)
         "name": "lag-area-trace-only",
         "file": "stages/scan_lag.py",
-        "old": "        area = exit_weighted_area(base.contour_um, retrace.moved(lag_um).contour_um, corners.mean(axis=0))\n",
-        "new": "        pass\n",
+        "old": "            area, outline = shoelace(both), both\n",
+        "new": "            pass\n",
         "tests": ["tests/test_scan_lag.py::test_feedback_render_area_where_the_tip_parachutes",
                   "tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
     },
     {   # each direction counted where its scan enters the imprint (session 28)
         "name": "lag-area-entry-sides",
         "file": "stages/scan_lag.py",
-        "old": "        return float(np.sign(tri.sum()) * np.sum(tri * (w if trace else 1.0 - w)))\n",
-        "new": "        return float(np.sign(tri.sum()) * np.sum(tri * (1.0 - w if trace else w)))\n",
+        "old": "    r = w * r_trace + (1.0 - w) * r_retrace\n",
+        "new": "    r = (1.0 - w) * r_trace + w * r_retrace\n",
         "tests": ["tests/test_scan_lag.py::test_feedback_render_area_where_the_tip_parachutes",
-                  "tests/test_scan_lag.py::test_exit_weighted_area_counts_each_direction_where_it_leaves"],
+                  "tests/test_scan_lag.py::test_exit_weighted_outline_counts_each_direction_where_it_leaves"],
     },
     {   # any two channels trusted, however little they match (session 22)
         "name": "scanlag-no-correlation-gate",
@@ -819,9 +826,9 @@ MUTANTS_INDENTS = [
     {   # the mean of the two directions' areas and depths (session 26: the mean area missed its goal more often)
         "name": "lag-sizes-averaged",
         "file": "stages/scan_lag.py",
-        "old": "                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter))\n",
+        "old": "                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter), area_um2=area,\n",
         "new": "                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter),\n"
-               "                   area_um2=0.5 * (trace.area_um2 + retrace.area_um2), depth_nm=max(trace.depth_nm, retrace.depth_nm))\n",
+               "                   area_um2=0.5 * (trace.area_um2 + retrace.area_um2), depth_nm=max(trace.depth_nm, retrace.depth_nm),\n",
         "tests": ["tests/test_scan_lag.py::test_both_directions_average_the_corners_whatever_the_lag"],
     },
     {   # a retrace imprint paired whatever it says (session 26: a retrace cut short had read d 19.4 µm for 23.5)

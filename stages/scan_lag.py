@@ -17,9 +17,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
+from .indent_edges import shoelace
 from .indent_geometry import Imprint, diagonals
 
-__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_area", "pair_directions", "scan_lag",
+__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_outline", "pair_directions", "scan_lag",
            "unlag"]
 
 LAG_MAX_PX = 8.0            # a larger lag is not a z loop's (a scan this slow to follow is not measured)
@@ -202,29 +203,48 @@ def _paired_corners(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.roll(b, -best, axis=0)
 
 
-def exit_weighted_area(trace_um: np.ndarray, retrace_um: np.ndarray, centre_um) -> float:
-    """Area (um^2) inside two outlines of one boundary, the trace's and the retrace's (both on the surface, the lag
-    taken out), each counted where its scan leaves the imprint.
+#: directions round the centre at which the two scan directions' outlines are blended
+OUTLINE_DIRECTIONS = 1440
 
-    The shoelace's triangles (centre, p_i, p_i+1) of the trace's outline weigh ``w = (1 + cos phi) / 2`` and the
-    retrace's ``1 - w``, ``phi`` the direction (from +x) of the triangle's middle seen from ``centre_um``: the trace
-    counts on the right, where it climbs out of the imprint, the retrace on the left, half each above and below. A
-    loop follows a climb with its lag, but a descent only as fast as it can fall: past a high rim the tip
-    parachutes, and the edge where a scan enters the imprint shows a slope shallower and further in than the
-    surface (feedback renderer, seed 168: 14-20 px inside over a quarter of the outline, on the trace's left and
-    the retrace's right).
+
+def _outer_radius(outline, centre, phi):
+    """Distance from ``centre`` to the outermost crossing of the closed ``outline`` (n, 2) along each direction
+    ``phi`` (rad from +x); NaN where a ray meets no side."""
+    p = np.asarray(outline, float) - centre
+    e = np.roll(p, -1, axis=0) - p
+    out = np.full(len(phi), np.nan)
+    for i in range(0, len(phi), 180):                       # 180 rays at a time: (rays, sides) arrays stay small
+        d = np.stack([np.cos(phi[i:i + 180]), np.sin(phi[i:i + 180])], axis=1)
+        den = d[:, None, 0] * e[None, :, 1] - d[:, None, 1] * e[None, :, 0]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = (p[None, :, 0] * d[:, None, 1] - p[None, :, 1] * d[:, None, 0]) / den     # along the side
+            t = (p[None, :, 0] * e[None, :, 1] - p[None, :, 1] * e[None, :, 0]) / den     # along the ray
+        hit = (u >= -1e-9) & (u <= 1.0 + 1e-9) & (t > 0) & np.isfinite(t)     # a vertex on the ray: both sides
+        t = np.where(hit, t, -np.inf).max(axis=1)
+        out[i:i + 180] = np.where(np.isfinite(t), t, np.nan)
+    return out
+
+
+def exit_weighted_outline(trace_um: np.ndarray, retrace_um: np.ndarray, centre_um) -> np.ndarray | None:
+    """One outline (n, 2) of a boundary from the trace's and the retrace's (both on the surface, the lag taken
+    out), each counted where its scan leaves the imprint; None where a direction from the centre misses either.
+
+    Along each of :data:`OUTLINE_DIRECTIONS` directions ``phi`` (from +x) from ``centre_um``, the radius is
+    ``w r_trace + (1 - w) r_retrace`` with ``w = (1 + cos phi) / 2``: the trace counts on the right, where it climbs
+    out of the imprint, the retrace on the left, half each above and below. Each radius is the outline's outermost
+    crossing (the small loops chips leave inside an outline do not count). A loop follows a climb with its lag,
+    but a descent only as fast as it can fall: past a high rim the tip parachutes, and the edge where a scan enters
+    the imprint shows a slope shallower and further in than the surface (feedback renderer, seed 168: 14-20 px
+    inside over a quarter of the outline, on the trace's left and the retrace's right).
     """
     c = np.asarray(centre_um, float)
-
-    def part(outline, trace):
-        p = np.asarray(outline, float) - c
-        q = np.roll(p, -1, axis=0)
-        tri = 0.5 * (p[:, 0] * q[:, 1] - p[:, 1] * q[:, 0])
-        mid = 0.5 * (p + q)
-        w = 0.5 * (1.0 + np.cos(np.arctan2(mid[:, 1], mid[:, 0])))
-        return float(np.sign(tri.sum()) * np.sum(tri * (w if trace else 1.0 - w)))
-
-    return part(trace_um, True) + part(retrace_um, False)
+    phi = np.linspace(-np.pi, np.pi, OUTLINE_DIRECTIONS, endpoint=False)
+    r_trace, r_retrace = _outer_radius(trace_um, c, phi), _outer_radius(retrace_um, c, phi)
+    if not (np.isfinite(r_trace).all() and np.isfinite(r_retrace).all()):
+        return None
+    w = 0.5 * (1.0 + np.cos(phi))
+    r = w * r_trace + (1.0 - w) * r_retrace
+    return c + r[:, None] * np.column_stack([np.cos(phi), np.sin(phi)])
 
 
 def both_directions(trace: Imprint, retrace: Imprint, lag_um: float) -> Imprint:
@@ -235,24 +255,25 @@ def both_directions(trace: Imprint, retrace: Imprint, lag_um: float) -> Imprint:
     imprint's border is not the whole map's). The mean of the two positions, corner by corner, cancels it
     whatever its size (feedback renderer, seeds 1-120: corners within 1.5 px on 93 % of seeds, 82 % with the
     whole map moved back by one lag). So the centre and the corners are the means, and the diagonals those of
-    the mean corners. The area counts each direction's boundary where its scan leaves the imprint
-    (:func:`exit_weighted_area`; feedback renderer, seeds 1-180: within 1 % on 72 % of seeds, 70 % from the trace
-    alone, its spread 1.37 -> 1.14 %). Everything else is the trace's, its boundary, floor and chips moved back by
-    ``lag_um`` (the report draws them on the trace moved back by it); depth stays the trace's, as a border-plane
-    reading of the channel takes it.
+    the mean corners. The boundary and its area count each direction's outline where its scan leaves the imprint
+    (:func:`exit_weighted_outline`). Everything else is the trace's, its floor and chips moved back by ``lag_um``;
+    depth stays the trace's, as a border-plane reading of the channel takes it.
     """
     base = trace.moved(-lag_um)
     corners = 0.5 * (np.asarray(trace.corners_um, float) + _paired_corners(np.asarray(trace.corners_um, float),
                                                                           np.asarray(retrace.corners_um, float)))
     d1, d2, orient = diagonals(corners)
     diameter = 0.5 * (trace.diameter_um + retrace.diameter_um)
-    area = base.area_um2
-    if base.contour_um is not None and retrace.contour_um is not None and np.isfinite(area) \
+    area, outline = base.area_um2, base.contour_um
+    if outline is not None and retrace.contour_um is not None and np.isfinite(area) \
             and np.isfinite(retrace.area_um2):
-        area = exit_weighted_area(base.contour_um, retrace.moved(lag_um).contour_um, corners.mean(axis=0))
+        both = exit_weighted_outline(outline, retrace.moved(lag_um).contour_um, corners.mean(axis=0))
+        if both is not None:
+            area, outline = shoelace(both), both
     return replace(base, x_um=0.5 * (trace.x_um + retrace.x_um), y_um=0.5 * (trace.y_um + retrace.y_um),
                    corners_um=corners, diag1_um=float(d1), diag2_um=float(d2), orientation_deg=float(orient),
-                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter), area_um2=area)
+                   diameter_um=float(diameter), hd_ratio=trace.depth_nm / (1000.0 * diameter), area_um2=area,
+                   contour_um=outline)
 
 
 #: the most a corner's trace-retrace offset may lie off the four corners' median offset for the two measurements to be
