@@ -68,7 +68,9 @@ def _map(f, m):
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
     ax.legend(loc="upper right", fontsize=7)
-    what = ("contact boundary at the original-surface level (cyan), pile-up above 5 noise levels (green)"
+    both = " from both scan directions, each where its scan leaves the imprint" if f.info.get("n_both_directions") else ""
+    what = (f"contact boundary at the original-surface level (cyan{';' if both else ''}{both}), pile-up above 5 noise "
+            "levels (green)"
             + (", chips spalled beside the edges, drawn past and left out of the area (magenta, hatched)."
                if m.chips_um else ".")
             if f.kind == "afm" else "information bar left out (orange dashed) where there is one.")

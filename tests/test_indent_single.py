@@ -241,6 +241,7 @@ def test_cli_render_single_and_measure(tmp_path, capsys):
     assert s["mean_hv"] == pytest.approx(0.1891 * 0.3 / (s["mean_d_um"] * 1e-3) ** 2, rel=1e-9)
     html = open(os.path.join(res_dir, "report.html")).read()
     assert "HV" in html
+    assert "from both scan directions" not in html                 # the trace alone: its boundary
     # the same heights as GSF (the default formats tif,gsf beside the IBW) read to the same diagonal
     gsf_dir = str(tmp_path / "g")
     assert main(["indents", os.path.join(out, "heights.gsf"), "--out", gsf_dir, "--quiet"]) == 0

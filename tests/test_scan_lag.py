@@ -134,6 +134,21 @@ def test_feedback_render_area_where_the_tip_parachutes(tmp_path, seed):
     assert abs(tab["area_um2"][k] / t["area_um2"] - 1) <= 0.01
 
 
+def test_report_draws_the_boundary_from_both_directions(tmp_path):
+    """Feedback seed 128 as IBW through the CLI: the report says the boundary it draws comes from both scan
+    directions, and the area in indents.csv is that outline's (within the 1 % goal of the truth)."""
+    from markcal.pipeline.cli import main
+    r = render_feedback(128)
+    ibw, _ = write_feedback(r, str(tmp_path), "fb128", "ibw")
+    out = str(tmp_path / "o")
+    assert main(["indents", ibw, "--out", out, "--quiet"]) == 0
+    html = open(tmp_path / "o" / "report.html").read()
+    assert "from both scan directions, each where its scan leaves the imprint" in html
+    rows = (tmp_path / "o" / "indents.csv").read_text().splitlines()
+    col = rows[0].split(",").index("area_um2")
+    assert abs(float(rows[1].split(",")[col]) / r.truth["area_um2"] - 1) <= 0.01
+
+
 def test_unlag_puts_the_map_back_and_moves_gaps():
     """A bump sampled 1.6 px right of its place (z(x - 1.6)) is back at its place within 0.5 % of its height;
     a gap moves with the map."""
