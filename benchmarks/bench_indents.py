@@ -2,7 +2,7 @@
 the real 1.7 Mpx SEM image; wall and CPU seconds, load average) and accuracy on unseen renders.
 
 Usage: python benchmarks/bench_indents.py [--runs 5] [--afm-seeds 10] [--om-seeds 4] [--micro-seeds 10]
-       [--rounded-seeds 8] [--single-seeds 10] [--om-hard-seeds 10] [--om-speed-seeds 12] [--dense-seeds 2]
+       [--rounded-seeds 8] [--single-seeds 10] [--om-hard-seeds 10] [--om-speed-seeds 12] [--dense-seeds 2] [--lag-seeds 12]
        [--*-first-seed N]
 
 Speed: read the float32 TIFF -> level -> detect -> measure -> index and register,
@@ -91,6 +91,9 @@ def main(argv=None):
     ap.add_argument("--om-hard-reference-um", type=float, default=None,
                     help="hard OM arrays: measure with --optics-from a reference array of this size (seed + 100, "
                          "same optics)")
+    ap.add_argument("--lag-seeds", type=int, default=0,
+                    help="5 x 5 AFM arrays scanned both ways through a PI z loop (fixtures z_loop_scans), with the "
+                         "spec: positions moved back by the lag, this code's and the slopes' correlation's")
     ap.add_argument("--dense-seeds", type=int, default=0,
                     help="dense AFM arrays (5 x 5 to 12 x 12, imprints 1.5-4 diameters apart) on seeds 1..N")
     ap.add_argument("--om-speed-seeds", type=int, default=0,
@@ -117,6 +120,8 @@ def main(argv=None):
         _om_sweep(a, tmp)
     if a.dense_seeds:
         _dense_sweep(a, tmp)
+    if a.lag_seeds:
+        _lag_sweep(a, tmp)
     if a.om_hard_seeds:
         _om_hard_sweep(a, tmp)
 
@@ -367,6 +372,49 @@ def _dense_sweep(a, tmp):
             print(f"{rows:4d} {pitch:7.1f} {nominal:4.1f} {seed:4d}  {masked:6.2f} {len(e):3d} {missed:6d} {false:5d} "
                   f"{1000 * np.sqrt(np.mean(e[:, 0] ** 2)):14.1f} {1000 * np.sqrt(np.mean(e[:, 1] ** 2)):12.1f} "
                   f"{1000 * np.abs(e[:, 1]).max():12.1f} {np.sqrt(np.mean(e[:, 2] ** 2)):13.2f}", flush=True)
+
+
+def _lag_sweep(a, tmp):
+    """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: the retrace is not
+    measured (an array's positions are registered to its lattice), so every position is the trace's moved back by
+    the lag. The lag from the two directions' level crossings (session 28) against the slopes' correlation maximum
+    (until session 27), in the same run."""
+    import markcal.stages.scan_lag as scan_lag_stage
+    from markcal.fixtures.indent_afm_feedback import z_loop_scans
+    print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goal: centre RMS "
+          "15 nm")
+    print("seed  ramp_lag_px  descent | lag_px: crossings  correlation | centre_rms_nm: crossings  correlation | "
+          "x_bias_nm: crossings  correlation")
+    both = []
+    for seed in range(1, a.lag_seeds + 1):
+        r = render_afm(seed, AfmOptions())
+        trace, retrace, loop = z_loop_scans(r.data, seed)
+        _, spec = _files(tmp, r)
+        path = os.path.join(tmp, "loop.ibw")
+        with open(path, "wb") as fh:
+            fh.write(ibw_bytes({"HeightTrace": trace * 1e-9, "HeightRetrace": retrace * 1e-9}, r.pixel_um * 1e-6))
+        row = []
+        for min_pairs in (scan_lag_stage.MIN_CROSSINGS, 10 ** 9):      # 10**9: the correlation's offset, as before
+            keep = scan_lag_stage.MIN_CROSSINGS
+            scan_lag_stage.MIN_CROSSINGS = min_pairs
+            try:
+                res = run_indents([path], spec)
+            finally:
+                scan_lag_stage.MIN_CROSSINGS = keep
+            tab = res.indents
+            e, _missed, _false = _errors(tab, r.truth)
+            txy = np.array([[i["x_um"], i["y_um"]] for i in r.truth["imprints"]])
+            dx = [tab["x_um"][k] - txy[int(np.argmin(np.hypot(*(txy - [tab["x_um"][k], tab["y_um"][k]]).T))), 0]
+                  for k in range(len(tab["x_um"]))]
+            row.append((res.summary.get("scan_lag_px") or 0.0, 1000 * np.sqrt(np.mean(e[:, 0] ** 2)),
+                        1000 * float(np.mean(dx))))
+        both.append(row)
+        print(f"{seed:4d} {loop['lag_px']:12.2f} {loop['descent_factor']:8.2f} | {row[0][0]:17.2f} {row[1][0]:12.2f} | "
+              f"{row[0][1]:24.1f} {row[1][1]:12.1f} | {row[0][2]:20.1f} {row[1][2]:12.1f}", flush=True)
+    c = np.array(both)
+    print(f"centre RMS within 15 nm: crossings {np.mean(c[:, 0, 1] <= 15) * 100:.0f} %, correlation "
+          f"{np.mean(c[:, 1, 1] <= 15) * 100:.0f} %; median centre RMS {np.median(c[:, 0, 1]):.1f} / "
+          f"{np.median(c[:, 1, 1]):.1f} nm; worst |x bias| {np.abs(c[:, 0, 2]).max():.1f} / {np.abs(c[:, 1, 2]).max():.1f} nm")
 
 
 def _om_sweep(a, tmp):

@@ -16,7 +16,7 @@ from markcal.fixtures.indent_maps import ibw_bytes
 from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.image_io import read_image
 from markcal.stages.indent_geometry import Imprint
-from markcal.fixtures.indent_afm_feedback import _servo
+from markcal.fixtures.indent_afm_feedback import _servo, z_loop_scans
 from markcal.stages.indent_edges import shoelace
 from markcal.stages.scan_lag import (MIN_CORRELATION, both_directions, crossing_offsets, exit_weighted_outline,
                                      pair_directions, scan_lag, unlag)
@@ -147,6 +147,16 @@ def test_report_draws_the_boundary_from_both_directions(tmp_path):
     rows = (tmp_path / "o" / "indents.csv").read_text().splitlines()
     col = rows[0].split(",").index("area_um2")
     assert abs(float(rows[1].split(",")[col]) / r.truth["area_um2"] - 1) <= 0.01
+
+
+def test_z_loop_scans_lay_a_ramp_along_by_its_lag():
+    """``z_loop_scans`` over long ramps (the bench's arrays through a z loop): the trace lies the drawn ramp lag
+    along +x, the retrace as far along -x, so the lag read from the pair is that lag within 0.05 px."""
+    x = np.arange(256.0)
+    surface = np.repeat((20.0 * np.abs(x - 128.0))[None, :], 32, axis=0)       # a V 128 px each side
+    trace, retrace, loop = z_loop_scans(surface, 3, lag_px=1.4, descent=2.0)
+    assert loop["lag_px"] == 1.4
+    assert abs(scan_lag(trace, retrace).lag_px - 1.4) <= 0.05
 
 
 def test_unlag_puts_the_map_back_and_moves_gaps():
