@@ -379,6 +379,7 @@ def _lag_sweep(a, tmp):
     measured (an array's positions are registered to its lattice), so every position is the trace's moved back by
     the lag. The lag from the two directions' level crossings (session 28) against the slopes' correlation maximum
     (until session 27), in the same run."""
+    import markcal.pipeline.flows.indents_afm as indents_afm
     import markcal.stages.scan_lag as scan_lag_stage
     from markcal.fixtures.indent_afm_feedback import z_loop_scans
     print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goal: centre RMS "
@@ -394,13 +395,14 @@ def _lag_sweep(a, tmp):
         with open(path, "wb") as fh:
             fh.write(ibw_bytes({"HeightTrace": trace * 1e-9, "HeightRetrace": retrace * 1e-9}, r.pixel_um * 1e-6))
         row = []
-        for min_pairs in (scan_lag_stage.MIN_CROSSINGS, 10 ** 9):      # 10**9: the correlation's offset, as before
-            keep = scan_lag_stage.MIN_CROSSINGS
-            scan_lag_stage.MIN_CROSSINGS = min_pairs
+        for now in (True, False):              # before: the correlation's offset, no imprints on the retrace
+            keep = scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE
+            if not now:
+                scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE = 10 ** 9, 0
             try:
                 res = run_indents([path], spec)
             finally:
-                scan_lag_stage.MIN_CROSSINGS = keep
+                scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE = keep
             tab = res.indents
             e, _missed, _false = _errors(tab, r.truth)
             txy = np.array([[i["x_um"], i["y_um"]] for i in r.truth["imprints"]])

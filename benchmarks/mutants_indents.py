@@ -649,6 +649,20 @@ MUTANTS_INDENTS = [
         "new": "        t = -np.where(hit, -t, -np.inf).max(axis=1)\n",
         "tests": ["tests/test_scan_lag.py::test_exit_weighted_outline_counts_each_direction_where_it_leaves"],
     },
+    {   # an array measured on the trace moved back by the ramp lag, not by its imprints' own shift (session 28)
+        "name": "lag-array-ramp-lag",
+        "file": "pipeline/flows/indents_afm.py",
+        "old": "                lag_px = shift\n",
+        "new": "                pass\n",
+        "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
+    },
+    {   # the shift from whichever imprints pair, one being enough (session 28)
+        "name": "lag-array-one-pair",
+        "file": "pipeline/flows/indents_afm.py",
+        "old": "    return float(np.median(offsets)) / 2 if len(offsets) >= 3 else None\n",
+        "new": "    return float(np.median(offsets)) if len(offsets) >= 1 else None\n",
+        "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
+    },
     {   # the lag from the slopes' correlation maximum, as before session 28
         "name": "scanlag-correlation-offset",
         "file": "stages/scan_lag.py",
