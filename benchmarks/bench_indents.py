@@ -376,16 +376,16 @@ def _dense_sweep(a, tmp):
 
 def _lag_sweep(a, tmp):
     """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: the retrace is not
-    measured (an array's positions are registered to its lattice), so every position is the trace's moved back by
-    the lag. The lag from the two directions' level crossings (session 28) against the slopes' correlation maximum
-    (until session 27), in the same run."""
+    measured whole (an array's positions are registered to its lattice), so every position is the trace's moved
+    back by one shift. This code (the crossings' lag; the shift of five imprints against the retrace) against
+    session 27's (the slopes' correlation maximum), in the same run."""
     import markcal.pipeline.flows.indents_afm as indents_afm
     import markcal.stages.scan_lag as scan_lag_stage
     from markcal.fixtures.indent_afm_feedback import z_loop_scans
     print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goal: centre RMS "
           "15 nm")
-    print("seed  ramp_lag_px  descent | lag_px: crossings  correlation | centre_rms_nm: crossings  correlation | "
-          "x_bias_nm: crossings  correlation")
+    print("seed  ramp_lag_px  descent | lag_px: now  session27 | centre_rms_nm: now  session27 | "
+          "x_bias_nm: now  session27   (now: the crossings' lag, arrays moved back by their imprints' shift)")
     both = []
     for seed in range(1, a.lag_seeds + 1):
         r = render_afm(seed, AfmOptions())
@@ -411,10 +411,10 @@ def _lag_sweep(a, tmp):
             row.append((res.summary.get("scan_lag_px") or 0.0, 1000 * np.sqrt(np.mean(e[:, 0] ** 2)),
                         1000 * float(np.mean(dx))))
         both.append(row)
-        print(f"{seed:4d} {loop['lag_px']:12.2f} {loop['descent_factor']:8.2f} | {row[0][0]:17.2f} {row[1][0]:12.2f} | "
-              f"{row[0][1]:24.1f} {row[1][1]:12.1f} | {row[0][2]:20.1f} {row[1][2]:12.1f}", flush=True)
+        print(f"{seed:4d} {loop['lag_px']:12.2f} {loop['descent_factor']:8.2f} | {row[0][0]:11.2f} {row[1][0]:10.2f} | "
+              f"{row[0][1]:18.1f} {row[1][1]:10.1f} | {row[0][2]:14.1f} {row[1][2]:10.1f}", flush=True)
     c = np.array(both)
-    print(f"centre RMS within 15 nm: crossings {np.mean(c[:, 0, 1] <= 15) * 100:.0f} %, correlation "
+    print(f"centre RMS within 15 nm: now {np.mean(c[:, 0, 1] <= 15) * 100:.0f} %, session 27 "
           f"{np.mean(c[:, 1, 1] <= 15) * 100:.0f} %; median centre RMS {np.median(c[:, 0, 1]):.1f} / "
           f"{np.median(c[:, 1, 1]):.1f} nm; worst |x bias| {np.abs(c[:, 0, 2]).max():.1f} / {np.abs(c[:, 1, 2]).max():.1f} nm")
 
