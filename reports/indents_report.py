@@ -217,7 +217,9 @@ def indents_report_html(res) -> str:
              "centres and corners the means of both directions)",
              (f'{num(s["scan_lag_px"], "px")} ({num(1e3 * s["scan_lag_px"] * s["pixel_um"], "nm")})'
               + (f', {s["n_files_lag_removed"]} file(s)' if s.get("n_files_lag_removed", 0) > 1 else "")
-              + f'; {s.get("n_imprints_both_directions", 0)} imprint(s) measured on both')
+              + f'; {s.get("n_imprints_both_directions", 0)} imprint(s) measured on both'
+              + (f'; positions moved back by the imprints\' own shift, {num(s["imprint_shift_px"], "px")} (five '
+                 'or fewer measured on the retrace too)' if s.get("imprint_shift_px") is not None else ""))
              if s.get("scan_lag_px") is not None else ""),
             ("flattened line by line before export (each line's fit taken again from its far field)",
              esc(s["line_flatten"]) if s.get("line_flatten", "none") != "none" else ""),

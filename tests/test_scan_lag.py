@@ -174,12 +174,32 @@ def test_array_through_a_z_loop_moved_back_by_its_imprints_shift(tmp_path, seed)
     t = r.truth
     (tmp_path / "array.toml").write_text(array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
     res = run_indents([str(path)], read_array_spec(str(tmp_path / "array.toml")), IndentsOptions())
-    assert "imprint_shift_px" in res.files[0].info
+    assert res.summary["imprint_shift_px"] == res.files[0].info["imprint_shift_px"]
     tab = res.indents
     txy = np.array([[i["x_um"], i["y_um"]] for i in t["imprints"]])
     dx = [tab["x_um"][k] - txy[int(np.argmin(np.hypot(*(txy - [tab["x_um"][k], tab["y_um"][k]]).T))), 0]
           for k in range(len(tab["x_um"]))]
     assert abs(1000 * np.mean(dx)) <= 15.0
+
+
+def test_report_says_an_array_was_moved_back_by_its_imprints_shift(tmp_path):
+    """The bench's array seed 1 through a z loop, by the CLI with its spec: summary.json holds the shift its
+    positions were moved back by (the imprints lie a fraction of the 1.10 px ramp lag read from the crossings),
+    and the report's lag row says so."""
+    from markcal.fixtures.indent_maps import AfmOptions, array_toml, render_afm
+    from markcal.pipeline.cli import main
+    r = render_afm(1, AfmOptions())
+    trace, retrace, _loop = z_loop_scans(r.data, 1)
+    path = tmp_path / "loop.ibw"
+    path.write_bytes(ibw_bytes({"HeightTrace": trace * 1e-9, "HeightRetrace": retrace * 1e-9}, r.pixel_um * 1e-6))
+    t = r.truth
+    (tmp_path / "array.toml").write_text(array_toml(t["rows"], t["cols"], t["pitch_um"], t["nominal_diameter_um"]))
+    out = tmp_path / "o"
+    # 4: the report's verdict FAIL (imprints out of tolerance: those the loop distorts), written in full
+    assert main(["indents", str(path), "--array", str(tmp_path / "array.toml"), "--out", str(out), "--quiet"]) in (0, 4)
+    s = json.loads((out / "summary.json").read_text())
+    assert 0.0 < s["imprint_shift_px"] < 0.5 * s["scan_lag_px"]
+    assert "moved back by the imprints' own shift" in (out / "report.html").read_text()
 
 
 def test_unlag_puts_the_map_back_and_moves_gaps():
