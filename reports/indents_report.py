@@ -213,8 +213,8 @@ def indents_report_html(res) -> str:
             ("optics' resolution (Airy radius of the fitted PSF)", num(s.get("optics_resolution_um"), "µm")),
             ("AFM noise", num(s["noise_nm"], "nm")),
             ("sample tilt removed", num(s["tilt_deg"], "°")),
-            ("z loop's lag along the fast axis, from trace and retrace (the map shown moved back by it; "
-             "centres and corners the means of both directions)",
+            ("z loop's lag along the fast axis, from trace and retrace (the map shown moved back by it; an "
+             "imprint measured on both has its centre and corners the means of both directions)",
              (f'{num(s["scan_lag_px"], "px")} ({num(1e3 * s["scan_lag_px"] * s["pixel_um"], "nm")})'
               + (f', {s["n_files_lag_removed"]} file(s)' if s.get("n_files_lag_removed", 0) > 1 else "")
               + f'; {s.get("n_imprints_both_directions", 0)} imprint(s) measured on both'
