@@ -53,6 +53,8 @@ def _files(folder, r):
 
 
 def _errors(table, truth):
+    """Each measured imprint against the nearest true one: centre distance, diameter error, depth error, x error
+    (µm, µm, nm, µm); and how many true imprints were missed and measured ones were false."""
     txy = np.array([[i["x_um"], i["y_um"]] for i in truth["imprints"]])
     rows = []
     used = set()
@@ -62,7 +64,7 @@ def _errors(table, truth):
         used.add(j)
         t = truth["imprints"][j]
         rows.append([d[j], table["diameter_um"][k] - t["diameter_um"],
-                     table["depth_nm"][k] - t.get("depth_nm", np.nan)])
+                     table["depth_nm"][k] - t.get("depth_nm", np.nan), table["x_um"][k] - txy[j, 0]])
     return np.array(rows), len(truth["imprints"]) - len(used), len(table["x_um"]) - len(used)
 
 
@@ -403,13 +405,9 @@ def _lag_sweep(a, tmp):
                 res = run_indents([path], spec)
             finally:
                 scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE = keep
-            tab = res.indents
-            e, _missed, _false = _errors(tab, r.truth)
-            txy = np.array([[i["x_um"], i["y_um"]] for i in r.truth["imprints"]])
-            dx = [tab["x_um"][k] - txy[int(np.argmin(np.hypot(*(txy - [tab["x_um"][k], tab["y_um"][k]]).T))), 0]
-                  for k in range(len(tab["x_um"]))]
+            e, _missed, _false = _errors(res.indents, r.truth)
             row.append((res.summary.get("scan_lag_px") or 0.0, 1000 * np.sqrt(np.mean(e[:, 0] ** 2)),
-                        1000 * float(np.mean(dx))))
+                        1000 * float(np.mean(e[:, 3]))))
         both.append(row)
         print(f"{seed:4d} {loop['lag_px']:12.2f} {loop['descent_factor']:8.2f} | {row[0][0]:11.2f} {row[1][0]:10.2f} | "
               f"{row[0][1]:18.1f} {row[1][1]:10.1f} | {row[0][2]:14.1f} {row[1][2]:10.1f}", flush=True)

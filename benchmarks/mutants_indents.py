@@ -656,11 +656,11 @@ MUTANTS_INDENTS = [
         "new": "                pass\n",
         "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
     },
-    {   # the shift from whichever imprints pair, one being enough (session 28)
-        "name": "lag-array-one-pair",
-        "file": "pipeline/flows/indents_afm.py",
-        "old": "    return float(np.median(offsets)) / 2 if len(offsets) >= 3 else None\n",
-        "new": "    return float(np.median(offsets)) if len(offsets) >= 1 else None\n",
+    {   # the imprints' whole trace-retrace offset taken as their shift, not half of it (session 28)
+        "name": "lag-array-whole-offset",
+        "file": "stages/scan_lag.py",
+        "old": "    return float(np.median(offsets)) / 2 if len(offsets) >= SHIFT_MIN_PAIRS else None\n",
+        "new": "    return float(np.median(offsets)) if len(offsets) >= SHIFT_MIN_PAIRS else None\n",
         "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
     },
     {   # the lag from the slopes' correlation maximum, as before session 28
@@ -713,8 +713,8 @@ MUTANTS_INDENTS = [
     {   # positions moved the way of the lag instead of back (session 22)
         "name": "scanlag-moved-with-the-lag",
         "file": "stages/scan_lag.py",
-        "old": "        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(-lag_um))\n",
-        "new": "        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(lag_um))\n",
+        "old": "        out.append(None if m is None else m.moved(-lag_um) if r is None else both_directions(m, r, lag_um))\n",
+        "new": "        out.append(None if m is None else m.moved(lag_um) if r is None else both_directions(m, r, lag_um))\n",
         "tests": [_LAG, "tests/test_scan_lag.py::test_pair_directions_moves_back_by_the_lag_where_the_retrace_has_none"],
     },
     {   # the boundary the report draws moved with the lag instead of back (session 26)
@@ -848,8 +848,8 @@ MUTANTS_INDENTS = [
     {   # a retrace imprint paired whatever it says (session 26: a retrace cut short had read d 19.4 µm for 23.5)
         "name": "lag-pair-without-agreement",
         "file": "stages/scan_lag.py",
-        "old": "        paired = j >= 0 and dist[j] <= 0.25 * m.d_um and _agree(m, found[j], pixel_um)\n",
-        "new": "        paired = j >= 0 and dist[j] <= 0.25 * m.d_um\n",
+        "old": "        out.append((m, found[j] if dist[j] <= 0.25 * m.d_um and _agree(m, found[j], pixel_um) else None))\n",
+        "new": "        out.append((m, found[j] if dist[j] <= 0.25 * m.d_um else None))\n",
         "tests": ["tests/test_scan_lag.py::test_pair_directions_refuses_a_retrace_that_disagrees",
                   "tests/test_scan_lag.py::test_feedback_render_retrace_cut_short_is_not_paired"],
     },

@@ -189,8 +189,7 @@ def feature_mask(z, sigma, min_area_px: int = 6, grow_px: int = 3, k: float = 5.
         small[0] = True
         bad[small[lab]] = False
     g = 2 * grow_px + 1
-    # dilation by a g x g square = a separable maximum filter (zero outside), several times faster
-    return dilate_square(bad, g)
+    return dilate_square(bad, g)                # grown by grow_px: a g x g square
 
 
 def level_afm(z_nm: np.ndarray, pixel_um: float = 1.0, n_iter: int = 3, bow_degree: int = 3) -> Levelled:

@@ -20,8 +20,8 @@ from scipy import ndimage
 from .indent_edges import shoelace
 from .indent_geometry import Imprint, diagonals
 
-__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_outline", "pair_directions", "scan_lag",
-           "unlag"]
+__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_outline", "imprints_shift_px",
+           "pair_directions", "scan_lag", "unlag"]
 
 LAG_MAX_PX = 8.0            # a larger lag is not a z loop's (a scan this slow to follow is not measured)
 MIN_CORRELATION = 0.5       # the two directions' slopes must agree this well at their offset
@@ -305,16 +305,39 @@ def pair_directions(trace: list, retrace: list, lag_um: float, pixel_um: float) 
     list, int
         The imprints (the trace's order) and how many were paired.
     """
+    out, n_paired = [], 0
+    for m, r in _matches(trace, retrace, lag_um, pixel_um):
+        out.append(None if m is None else m.moved(-lag_um) if r is None else both_directions(m, r, lag_um))
+        n_paired += r is not None
+    return out, n_paired
+
+
+def _matches(trace: list, retrace: list, lag_um: float, pixel_um: float) -> list:
+    """Each imprint of the trace (None: not measured) with the retrace's imprint at its place, or None: the retrace's
+    nearest ``2 lag_um`` left of it, within a quarter of the trace imprint's mean diagonal, that agrees with it
+    (:func:`_agree`)."""
     found = [m for m in retrace if m is not None]
     xy = np.array([[m.x_um, m.y_um] for m in found]).reshape(-1, 2)
-    out, n_paired = [], 0
+    out = []
     for m in trace:
-        if m is None:
-            out.append(None)
+        if m is None or not len(found):
+            out.append((m, None))
             continue
         dist = np.hypot(xy[:, 0] - (m.x_um - 2 * lag_um), xy[:, 1] - m.y_um)
-        j = int(np.argmin(dist)) if len(dist) else -1
-        paired = j >= 0 and dist[j] <= 0.25 * m.d_um and _agree(m, found[j], pixel_um)
-        out.append(both_directions(m, found[j], lag_um) if paired else m.moved(-lag_um))
-        n_paired += paired
-    return out, n_paired
+        j = int(np.argmin(dist))
+        out.append((m, found[j] if dist[j] <= 0.25 * m.d_um and _agree(m, found[j], pixel_um) else None))
+    return out
+
+
+#: imprints that must pair for :func:`imprints_shift_px` to tell their shift
+SHIFT_MIN_PAIRS = 3
+
+
+def imprints_shift_px(trace: list, retrace: list, lag_um: float, pixel_um: float) -> float | None:
+    """How far the trace's imprints lie along the fast axis (px, +x): half the median x offset of their centres from
+    the retrace's imprints at their places (:func:`_matches`); None where under :data:`SHIFT_MIN_PAIRS` pair.
+
+    A loop whose proportional path follows short slopes moves a small imprint less than a ramp's lag (3 µm
+    imprints 30 px across: about 0.2 px for ramp lags of 1.3-1.7 px; ``docs/indents.md``, session 28)."""
+    offsets = [(m.x_um - r.x_um) / pixel_um for m, r in _matches(trace, retrace, lag_um, pixel_um) if r is not None]
+    return float(np.median(offsets)) / 2 if len(offsets) >= SHIFT_MIN_PAIRS else None

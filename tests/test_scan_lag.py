@@ -378,6 +378,29 @@ def test_real_nid_grid_trace_and_retrace():
     assert scan_lag(t, r[:, ::-1]).correlation < 0.2
 
 
+@pytest.mark.skipif(not (NID / "circles.nid").is_file(), reason="../shared/realdata/afm/nanosurf_nid is absent")
+@pytest.mark.parametrize("name, best_px", [("grid1.nid", 1.38), ("circles.nid", 2.42)])
+def test_real_nid_lag_against_the_best_aligning_shift(name, best_px):
+    """The two Nanosurf maps that hold both scan directions: the lag from the level crossings against an independent
+    reading, the shift (0.02 px grid) whose two directions' x slopes differ least, moved back by it (grid1.nid
+    1.38 px, circles.nid 2.42 px; the slopes' correlation maximum gave 1.335 and 2.20). The lag lies within
+    0.35 px of it (1.350 and 2.123 px) and leaves a slope difference within 5 % of that least one (1 % and 3.8 %):
+    the crossings leave the descents off the raised circles out, which a least-squares alignment counts."""
+    img = read_image(NID / name)
+    t, r = img.data.astype(float), img.other_direction.astype(float)
+
+    def slope_diff_rms(lag):
+        d = (np.diff(unlag(t, lag), axis=1) - np.diff(unlag(r, -lag), axis=1))[:, 10:-10]
+        return float(np.sqrt(np.nanmean(d ** 2)))
+
+    grid = np.arange(0.0, 4.001, 0.02)
+    rms = np.array([slope_diff_rms(v) for v in grid])
+    assert grid[int(np.argmin(rms))] == pytest.approx(best_px, abs=0.011)
+    got = scan_lag(t, r)
+    assert got.usable and abs(got.lag_px - best_px) <= 0.35
+    assert slope_diff_rms(got.lag_px) <= 1.05 * rms.min()
+
+
 @pytest.mark.skipif(not (NID / "sapphire.nid").is_file(), reason="../shared/realdata/afm/nanosurf_nid is absent")
 def test_real_nid_flat_sapphire_lag_not_determined():
     """sapphire.nid: atomically flat terraces, slopes mostly noise: the two directions' correlation stays under

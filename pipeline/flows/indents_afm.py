@@ -16,7 +16,7 @@ from markcal.stages.image_io import Image
 from markcal.stages.indent_level import corner_level, level_map, level_single
 from markcal.stages.indent_single import facet_apex_nm, measure_single
 from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
-from markcal.stages.scan_lag import pair_directions, scan_lag, unlag
+from markcal.stages.scan_lag import SHIFT_MIN_PAIRS, imprints_shift_px, pair_directions, scan_lag, unlag
 
 __all__ = ["afm_map", "BOTH_DIRECTIONS_MAX_IMPRINTS", "BOTH_DIRECTIONS_MAX_PIXELS"]
 
@@ -43,7 +43,7 @@ def afm_map(img: Image, spec, say, info: dict) -> tuple:
             say(f"{name}: {both} of {sum(m is not None for m in imps)} imprint(s) measured on the retrace too: "
                 "centres and corners the means of both scan directions")
         else:
-            if (shift := _imprints_shift_px(img, imps, floor)) is not None:
+            if (shift := _imprints_shift_px(img, imps, floor, lag_px)) is not None:
                 info["imprint_shift_px"] = shift
                 say(f"{name}: the imprints lie {shift:+.2f} px along the fast axis (trace against retrace, "
                     f"{IMPRINT_SHIFT_SAMPLE} or fewer of them): that taken out, not the ramp lag")
@@ -156,31 +156,22 @@ BOTH_DIRECTIONS_MAX_PIXELS = 512 * 512
 IMPRINT_SHIFT_SAMPLE = 5
 
 
-def _imprints_shift_px(img: Image, imps: list, floor: float) -> float | None:
-    """How far the trace's imprints lie along the fast axis (px, +x), where the retrace is not measured whole: half
-    the median x offset between the trace's and the retrace's centres of up to :data:`IMPRINT_SHIFT_SAMPLE`
-    imprints nearest the map's middle; None with under three pairs.
-
-    A loop whose proportional path follows short slopes moves a small imprint less than a ramp's lag (3 µm
-    imprints 30 px across: about 0.2 px for ramp lags of 1.3-1.7 px; ``docs/indents.md``, session 28)."""
+def _imprints_shift_px(img: Image, imps: list, floor: float, lag_px: float) -> float | None:
+    """How far the trace's imprints lie along the fast axis (px), where the retrace is not measured whole: up to
+    :data:`IMPRINT_SHIFT_SAMPLE` imprints nearest the map's middle measured on the retrace too (levelled as the
+    trace is, only those pits measured), :func:`markcal.stages.scan_lag.imprints_shift_px`; None where that
+    cannot be told."""
     px = img.pixel_um
     found = sel.accept_imprints(imps, px, floor, size_window_um=(0.0, np.inf))     # an array's shallow ones too
-    if IMPRINT_SHIFT_SAMPLE == 0 or len(found) < 3:
+    if IMPRINT_SHIFT_SAMPLE == 0 or len(found) < SHIFT_MIN_PAIRS:
         return None
     mid = np.array(img.shape[::-1]) * px / 2
     pick = sorted(found, key=lambda m: float(np.hypot(m.x_um - mid[0], m.y_um - mid[1])))[:IMPRINT_SHIFT_SAMPLE]
     try:
-        lv, _filled = level_map(img.other_direction, px)
+        _heights, lv, _filled, _plateau = _levelled(img.other_direction, px, lambda m: None, "", {})
     except MarkcalError:
         return None
-    other = [m for m in _afm_imprints(lv, px, at=pick) if m is not None]
-    offsets = []
-    for m in pick:
-        near = [o for o in other if np.hypot(o.x_um - m.x_um, o.y_um - m.y_um) <= 0.25 * m.d_um]
-        if near:
-            o = min(near, key=lambda o: np.hypot(o.x_um - m.x_um, o.y_um - m.y_um))
-            offsets.append((m.x_um - o.x_um) / px)
-    return float(np.median(offsets)) / 2 if len(offsets) >= 3 else None
+    return imprints_shift_px(pick, _afm_imprints(lv, px, at=pick), lag_px * px, px)
 
 
 def _other_direction(img: Image, imps: list, floor: float, spec) -> list | None:
@@ -198,9 +189,23 @@ def _other_direction(img: Image, imps: list, floor: float, spec) -> list | None:
 
 
 def _afm_channel(raw, px, spec, say, name, info) -> tuple:
-    """One AFM height channel levelled and its imprints measured: the line flatten undone, the clipped floor
-    found, the map levelled (from the far field only where an imprint fills it, then to the surface beyond the
-    corners). Returns the levelled map and the imprints (None where the measurement failed)."""
+    """One AFM height channel levelled (:func:`_levelled`, then to the surface beyond the corners where an imprint
+    fills the map) and its imprints measured. Returns the levelled map and the imprints (None where the
+    measurement failed)."""
+    heights, lv, filled, plateau = _levelled(raw, px, say, name, info)
+    _refuse_inverted(lv, px)
+    say(f"{name}: detecting and fitting imprints")
+    # where the level beyond the corners may follow, the corners that place its strips are taken at 0
+    imps = _afm_imprints(lv, px, local_level=not (spec is None and filled), plateau=plateau)
+    if spec is None and filled:
+        lv, imps = _level_at_corners(heights, lv, px, imps, max(5.0, 8 * lv.noise_nm), say, name, info, plateau)
+    return lv, imps
+
+
+def _levelled(raw, px, say, name, info) -> tuple:
+    """One AFM height channel levelled: the line flatten undone, the clipped floor found, the map levelled (from
+    the far field only where an imprint fills it). Returns the heights (flatten undone),
+    the levelled map, whether an imprint fills it and the clipped floor's pixels (None: not clipped)."""
     heights = raw
     if (flat := detect_line_flatten(heights)) is not None:
         # flattened line by line before export, imprint and all: each line's fit taken from its far field
@@ -222,10 +227,4 @@ def _afm_channel(raw, px, spec, say, name, info) -> tuple:
             "Z range), depths are lower bounds")
     info["floor_clipped_px"] = n_clip
     lv, filled = level_map(heights, px)         # an imprint filling much of the field: from the far field only
-    _refuse_inverted(lv, px)
-    say(f"{name}: detecting and fitting imprints")
-    # where the level beyond the corners may follow, the corners that place its strips are taken at 0
-    imps = _afm_imprints(lv, px, local_level=not (spec is None and filled), plateau=plateau)
-    if spec is None and filled:
-        lv, imps = _level_at_corners(heights, lv, px, imps, max(5.0, 8 * lv.noise_nm), say, name, info, plateau)
-    return lv, imps
+    return heights, lv, filled, plateau
