@@ -85,7 +85,7 @@ def main(argv=None):
     print(f"goals: d {D_GOAL_PCT} % or {D_GOAL_PX:g} px (larger), depth {DEPTH_GOAL_PCT:g} %, "
           f"area {AREA_GOAL_PCT:g} %, corners {CORNER_GOAL_PX} px")
     print("seed pix_nm   d_um fill recov  d_err%   d_px  depth%   area%  corner_px border%  n  render_s  run_s  fails")
-    rows, ok, failed, border, lag_err = [], [], 0, [], []
+    rows, ok, failed, border, lag_err, missed = [], [], 0, [], [], []
     with tempfile.TemporaryDirectory(prefix="bench_feedback_") as tmp:
         for s in seeds:
             t0 = time.perf_counter()
@@ -111,6 +111,8 @@ def main(argv=None):
             border.append(100 * (float(t["depth_nm"][k]) / border_plane_depth_nm(r.height_nm) - 1))
             if res.summary.get("scan_lag_px") is not None and tr["feedback"]["enabled"]:
                 lag_err.append(res.summary["scan_lag_px"] - tr["feedback"]["lag_px"])
+            if "floor_missed" in res.files[0].info and tr["feedback"]["enabled"]:
+                missed.append((res.files[0].info["floor_missed"], tr["feedback"]["descent_factor"], e["depth_pct"]))
             flags = within(e, tr)
             rows.append(e)
             ok.append(flags)
@@ -138,6 +140,14 @@ def main(argv=None):
         e = np.abs(lag_err)
         print(f"z loop lag against the renderer's ramp lag ({len(e)} maps): within 0.3 px on "
               f"{100 * np.mean(e <= 0.3):.0f} %, median |error| {np.median(e):.2f} px, max {e.max():.2f} px")
+    if missed:
+        m = np.array(missed, float)
+        flag, short = m[:, 0] > 0, m[:, 2] < -5
+        print(f"floor not reached (flag, {len(m)} maps with both directions): {flag.sum():.0f} flagged; depth over 5 % "
+              f"short {short.sum():.0f}, of them flagged {(flag & short).sum():.0f}; flagged with the loop falling as "
+              f"fast as the facets (descent >= 1) {(flag & (m[:, 1] >= 1)).sum():.0f} of {(m[:, 1] >= 1).sum():.0f}; "
+              f"median depth error flagged {np.median(m[flag, 2]) if flag.any() else np.nan:+.2f} %, not flagged "
+              f"{np.median(m[~flag, 2]) if (~flag).any() else np.nan:+.2f} %")
 
 
 if __name__ == "__main__":

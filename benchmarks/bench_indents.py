@@ -377,44 +377,40 @@ def _dense_sweep(a, tmp):
 
 
 def _lag_sweep(a, tmp):
-    """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: the retrace is not
-    measured whole (an array's positions are registered to its lattice), so every position is the trace's moved
-    back by one shift. This code (the crossings' lag; the shift of five imprints against the retrace) against
-    session 27's (the slopes' correlation maximum), in the same run."""
-    import markcal.pipeline.flows.indents_afm as indents_afm
-    import markcal.stages.scan_lag as scan_lag_stage
+    """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: every imprint of
+    the trace measured on the retrace too, centres and corners the means of both (those measured one way only
+    moved back by the imprints' own shift). The same maps without the loop (the surface as rendered, trace only)
+    in the same run: the loop should cost nothing."""
     from markcal.fixtures.indent_afm_feedback import z_loop_scans
-    print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goal: centre RMS "
-          "15 nm")
-    print("seed  ramp_lag_px  descent | lag_px: now  session27 | centre_rms_nm: now  session27 | "
-          "x_bias_nm: now  session27   (now: the crossings' lag, arrays moved back by their imprints' shift)")
-    both = []
+    print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goals: centre RMS "
+          "15 nm, diameter RMS 20 nm")
+    print("seed  ramp_lag_px | loop: lag_px  paired  centre_rms_nm  x_bias_nm  diam_rms_nm  diam_median_nm | "
+          "no loop: centre_rms_nm  diam_rms_nm")
+    rows = []
     for seed in range(1, a.lag_seeds + 1):
         r = render_afm(seed, AfmOptions())
         trace, retrace, loop = z_loop_scans(r.data, seed)
         _, spec = _files(tmp, r)
-        path = os.path.join(tmp, "loop.ibw")
+        path, flat = os.path.join(tmp, "loop.ibw"), os.path.join(tmp, "flat.ibw")
         with open(path, "wb") as fh:
             fh.write(ibw_bytes({"HeightTrace": trace * 1e-9, "HeightRetrace": retrace * 1e-9}, r.pixel_um * 1e-6))
-        row = []
-        for now in (True, False):              # before: the correlation's offset, no imprints on the retrace
-            keep = scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE
-            if not now:
-                scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE = 10 ** 9, 0
-            try:
-                res = run_indents([path], spec)
-            finally:
-                scan_lag_stage.MIN_CROSSINGS, indents_afm.IMPRINT_SHIFT_SAMPLE = keep
-            e, _missed, _false = _errors(res.indents, r.truth)
-            row.append((res.summary.get("scan_lag_px") or 0.0, 1000 * np.sqrt(np.mean(e[:, 0] ** 2)),
-                        1000 * float(np.mean(e[:, 3]))))
-        both.append(row)
-        print(f"{seed:4d} {loop['lag_px']:12.2f} {loop['descent_factor']:8.2f} | {row[0][0]:11.2f} {row[1][0]:10.2f} | "
-              f"{row[0][1]:18.1f} {row[1][1]:10.1f} | {row[0][2]:14.1f} {row[1][2]:10.1f}", flush=True)
-    c = np.array(both)
-    print(f"centre RMS within 15 nm: now {np.mean(c[:, 0, 1] <= 15) * 100:.0f} %, session 27 "
-          f"{np.mean(c[:, 1, 1] <= 15) * 100:.0f} %; median centre RMS {np.median(c[:, 0, 1]):.1f} / "
-          f"{np.median(c[:, 1, 1]):.1f} nm; worst |x bias| {np.abs(c[:, 0, 2]).max():.1f} / {np.abs(c[:, 1, 2]).max():.1f} nm")
+        with open(flat, "wb") as fh:
+            fh.write(ibw_bytes({"HeightTrace": r.data * 1e-9}, r.pixel_um * 1e-6))
+        res = run_indents([path], spec)
+        e, _missed, _false = _errors(res.indents, r.truth)
+        f, _missed, _false = _errors(run_indents([flat], spec).indents, r.truth)
+        row = [1000 * np.sqrt(np.mean(e[:, 0] ** 2)), 1000 * float(np.mean(e[:, 3])),
+               1000 * np.sqrt(np.mean(e[:, 1] ** 2)), 1000 * float(np.median(e[:, 1])),
+               1000 * np.sqrt(np.mean(f[:, 0] ** 2)), 1000 * np.sqrt(np.mean(f[:, 1] ** 2))]
+        rows.append(row)
+        print(f"{seed:4d} {loop['lag_px']:12.2f} | {res.summary.get('scan_lag_px') or 0.0:12.2f} "
+              f"{res.summary.get('n_imprints_both_directions') or 0:7d} {row[0]:14.1f} {row[1]:10.1f} {row[2]:12.1f} "
+              f"{row[3]:15.1f} | {row[4]:22.1f} {row[5]:12.1f}", flush=True)
+    c = np.array(rows)
+    print(f"through the loop: centre RMS within 15 nm {np.mean(c[:, 0] <= 15) * 100:.0f} %, diameter RMS within 20 nm "
+          f"{np.mean(c[:, 2] <= 20) * 100:.0f} %; medians {np.median(c[:, 0]):.1f} / {np.median(c[:, 2]):.1f} nm; "
+          f"worst |x bias| {np.abs(c[:, 1]).max():.1f} nm. Without it: {np.mean(c[:, 4] <= 15) * 100:.0f} % / "
+          f"{np.mean(c[:, 5] <= 20) * 100:.0f} %, medians {np.median(c[:, 4]):.1f} / {np.median(c[:, 5]):.1f} nm")
 
 
 def _om_sweep(a, tmp):

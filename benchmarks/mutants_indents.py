@@ -663,6 +663,27 @@ MUTANTS_INDENTS = [
         "new": "    return float(np.median(offsets)) if len(offsets) >= SHIFT_MIN_PAIRS else None\n",
         "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
     },
+    {   # the floors' separation without the lag taken off: every paired map's floors lie 2 lags apart (session 29)
+        "name": "lag-floor-separation-with-lag",
+        "file": "stages/scan_lag.py",
+        "old": "            out.append((m.floor_um[0] - r.floor_um[0] - 2 * lag_um) / pixel_um)\n",
+        "new": "            out.append((m.floor_um[0] - r.floor_um[0]) / pixel_um)\n",
+        "tests": ["tests/test_scan_lag.py::test_floor_not_reached_where_the_tip_falls_slower_than_the_facets"],
+    },
+    {   # the separation's size, not its direction: a retrace floor right of the trace's is no parachute (session 29)
+        "name": "lag-floor-separation-unsigned",
+        "file": "stages/scan_lag.py",
+        "old": "            out.append((m.floor_um[0] - r.floor_um[0] - 2 * lag_um) / pixel_um)\n",
+        "new": "            out.append(abs(m.floor_um[0] - r.floor_um[0] - 2 * lag_um) / pixel_um)\n",
+        "tests": ["tests/test_scan_lag.py::test_floor_separations_are_signed_and_beyond_the_lag"],
+    },
+    {   # the flag's threshold at 5 px: a floor missed by 6-9 % not flagged (session 29)
+        "name": "lag-floor-threshold-loose",
+        "file": "stages/scan_lag.py",
+        "old": "FLOOR_MISSED_PX = 2.0\n",
+        "new": "FLOOR_MISSED_PX = 7.0\n",
+        "tests": ["tests/test_scan_lag.py::test_floor_not_reached_where_the_tip_falls_slower_than_the_facets"],
+    },
     {   # the lag from the slopes' correlation maximum, as before session 28
         "name": "scanlag-correlation-offset",
         "file": "stages/scan_lag.py",

@@ -232,6 +232,8 @@ def indents_report_html(res) -> str:
              if s.get("n_files_levelled_to_corners") else ""),
             ("floor clipped (the scanner's Z range): depths are lower bounds",
              f'{s["n_files_floor_clipped"]} file(s)' if s.get("n_files_floor_clipped") else ""),
+            ("floor reached on neither scan direction (z loop too slow): depths are lower bounds",
+             f'{s["n_files_floor_missed"]} file(s)' if s.get("n_files_floor_missed") else ""),
             ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
@@ -242,6 +244,15 @@ def indents_report_html(res) -> str:
         parts.append(f'<div class="warn"><b>Floor clipped:</b> in {names} that many pixels hold the map\'s lowest '
                      "height exactly: the scanner reached the end of its Z range, so the floor is cut flat and the "
                      "depths (and H/D) are lower bounds. The diagonals and areas do not depend on it.</div>")
+    missed = [f for f in res.files if f.info.get("floor_missed")]
+    if missed:
+        names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ({f.info['floor_separation_px']:.1f} px)"
+                          for f in missed)
+        parts.append(f'<div class="warn"><b>Floor not reached:</b> in {names} the trace\'s deepest point lies that '
+                     "far right of the retrace's, beyond the z loop's lag. The tip fell more slowly than the facets "
+                     "and met the far facet above the floor on both scan directions, so the depths (and H/D) are "
+                     "lower bounds. Scan more slowly or raise the loop's gains. The diagonals, taken from both "
+                     "directions, do not depend on it.</div>")
     unsure = [f for f in res.files if f.info.get("line_flatten_uncertain")]
     if unsure:
         names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code>: {f.info['line_flatten_short_lines']} lines"

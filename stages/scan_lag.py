@@ -20,8 +20,8 @@ from scipy import ndimage
 from .indent_edges import shoelace
 from .indent_geometry import Imprint, diagonals
 
-__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_outline", "imprints_shift_px",
-           "pair_directions", "scan_lag", "unlag"]
+__all__ = ["ScanLag", "both_directions", "crossing_offsets", "exit_weighted_outline", "floor_separations_px",
+           "imprints_shift_px", "pair_directions", "scan_lag", "unlag"]
 
 LAG_MAX_PX = 8.0            # a larger lag is not a z loop's (a scan this slow to follow is not measured)
 MIN_CORRELATION = 0.5       # the two directions' slopes must agree this well at their offset
@@ -341,3 +341,24 @@ def imprints_shift_px(trace: list, retrace: list, lag_um: float, pixel_um: float
     imprints 30 px across: about 0.2 px for ramp lags of 1.3-1.7 px; ``docs/indents.md``, session 28)."""
     offsets = [(m.x_um - r.x_um) / pixel_um for m, r in _matches(trace, retrace, lag_um, pixel_um) if r is not None]
     return float(np.median(offsets)) / 2 if len(offsets) >= SHIFT_MIN_PAIRS else None
+
+
+#: the trace's floor lying this far (px) right of the retrace's beyond twice the lag: neither scan reached the floor.
+#: Feedback renderer seeds 1-40: 0.27 px at most where the loop falls as fast as the facets (descent >= 1); 2.5-25 px
+#: on the 17 seeds whose depth is 3-23 % short because the tip parachutes
+FLOOR_MISSED_PX = 2.0
+
+
+def floor_separations_px(trace: list, retrace: list, lag_um: float, pixel_um: float) -> list:
+    """How far (px, +x) each paired imprint's floor lies on the trace right of the retrace's, beyond twice the lag
+    (:func:`_matches`; imprints without a retrace's or a floor left out).
+
+    A tip that falls slower than a facet descends on a line of its own and meets the far facet above the floor:
+    the trace's deepest point lies right of the floor, the retrace's as far left, and both are short of it. On a
+    V profile of half-width ``a`` the depth missed is ``separation / (2 a)`` of the whole; with
+    :data:`FLOOR_MISSED_PX` or more the depth is a lower bound."""
+    out = []
+    for m, r in _matches(trace, retrace, lag_um, pixel_um):
+        if r is not None and m.floor_um is not None and r.floor_um is not None:
+            out.append((m.floor_um[0] - r.floor_um[0] - 2 * lag_um) / pixel_um)
+    return out

@@ -19,7 +19,7 @@ from markcal.stages.indent_geometry import Imprint
 from markcal.fixtures.indent_afm_feedback import _servo, z_loop_scans
 from markcal.stages.indent_edges import shoelace
 from markcal.stages.scan_lag import (MIN_CORRELATION, both_directions, crossing_offsets, exit_weighted_outline,
-                                     pair_directions, scan_lag, unlag)
+                                     floor_separations_px, pair_directions, scan_lag, unlag)
 
 from realdata import realdata_root
 from test_independent_renders import _corners_um
@@ -407,3 +407,45 @@ def test_real_nid_flat_sapphire_lag_not_determined():
     the limit, and no lag is taken out."""
     img = read_image(NID / "sapphire.nid")
     assert not scan_lag(img.data, img.other_direction).usable
+
+
+@pytest.mark.parametrize("seed, slow", [(3, 0.65), (20, 0.5)])
+def test_floor_not_reached_where_the_tip_falls_slower_than_the_facets(tmp_path, seed, slow):
+    """One map scanned through the same z loop twice: falling at most ``slow`` times the map's steepest descent,
+    neither direction reaches the floor (depth 13-17 % short of the truth) and the file is flagged, its floors'
+    separation beyond the lag 2 px or more; falling 1.5 times as fast, the depth is within 4 % and no flag is
+    raised (separation under 1 px). The summary and the report say so."""
+    from markcal.pipeline.cli import main
+    # no chips, particles or scanner steps: the steepest descents are the facets', to which the fall is set
+    r = render_feedback(seed, 128, feedback=False, chipping=False, particles=False, scanner=False)
+    runs = {}
+    for descent in (slow, 1.5):
+        trace, retrace, _ = z_loop_scans(r.height_nm.astype(float), seed, descent=descent)
+        path = tmp_path / f"d{descent}.ibw"
+        path.write_bytes(ibw_bytes({"HeightTrace": trace * 1e-9, "HeightRetrace": retrace * 1e-9},
+                                   r.pixel_um * 1e-6))
+        res = run_indents([str(path)], None, IndentsOptions())
+        runs[descent] = res.files[0].info, res.indents["depth_nm"][0] / r.truth["depth_nm"] - 1, res.summary
+    info, short, summary = runs[slow]
+    assert short < -0.05 and info["floor_missed"] and info["floor_separation_px"] >= 2.0
+    assert summary["n_files_floor_missed"] == 1
+    info, short, summary = runs[1.5]
+    assert abs(short) <= 0.04 and not info["floor_missed"] and abs(info["floor_separation_px"]) < 1.0
+    assert summary["n_files_floor_missed"] == 0
+    out = tmp_path / "o"
+    assert main(["indents", str(tmp_path / f"d{slow}.ibw"), "--out", str(out), "--quiet"]) == 0
+    assert "Floor not reached:" in (out / "report.html").read_text()
+    assert json.loads((out / "summary.json").read_text())["n_files_floor_missed"] == 1
+
+
+def test_floor_separations_are_signed_and_beyond_the_lag():
+    """Floors 0.3 µm (3 px) right of the retrace's beyond two lags of 0.2 µm: +3 px (the tip met the far facet on
+    both directions); 3 px left: -3 px, a floor broad or flat enough to be found anywhere, no parachute; an imprint
+    without a retrace's: left out."""
+    a = np.array([[10.0, 5.0], [5.0, 10.0], [0.0, 5.0], [5.0, 0.0]])
+    lag = 0.2
+    for offset_um, want_px in ((0.3, 3.0), (-0.3, -3.0)):
+        trace = [dataclasses.replace(_imprint(a + [lag, 0.0]), floor_um=(5.0 + lag + offset_um / 2, 5.0)),
+                 _imprint(a + [40.0, 0.0])]
+        retrace = [dataclasses.replace(_imprint(a - [lag, 0.0]), floor_um=(5.0 - lag - offset_um / 2, 5.0))]
+        assert floor_separations_px(trace, retrace, lag, 0.1) == pytest.approx([want_px])

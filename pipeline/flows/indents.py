@@ -377,6 +377,7 @@ def _summary(files, failed, t, spec, opt, runtime_s):
         "scan_lag_px": files[0].info.get("scan_lag_px"),
         "imprint_shift_px": files[0].info.get("imprint_shift_px"),
         "n_imprints_both_directions": int(sum(f.info.get("n_both_directions", 0) for f in files)),
+        "n_files_floor_missed": int(sum(bool(f.info.get("floor_missed")) for f in files)),
         "mean_d_um": float(np.mean(t["d_um"])),
         "mean_area_um2": _nanmean(t["area_um2"]),
         "mean_apex_depth_nm": _nanmean(t["apex_depth_nm"]),

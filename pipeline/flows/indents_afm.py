@@ -16,7 +16,8 @@ from markcal.stages.image_io import Image
 from markcal.stages.indent_level import corner_level, level_map, level_single
 from markcal.stages.indent_single import facet_apex_nm, measure_single
 from markcal.stages.indent_unflatten import detect_line_flatten, unflatten_lines
-from markcal.stages.scan_lag import SHIFT_MIN_PAIRS, imprints_shift_px, pair_directions, scan_lag, unlag
+from markcal.stages.scan_lag import (FLOOR_MISSED_PX, SHIFT_MIN_PAIRS, floor_separations_px, imprints_shift_px,
+                                     pair_directions, scan_lag, unlag)
 
 __all__ = ["afm_map", "BOTH_DIRECTIONS_MAX_IMPRINTS", "BOTH_DIRECTIONS_MAX_PIXELS"]
 
@@ -38,6 +39,7 @@ def afm_map(img: Image, spec, say, info: dict) -> tuple:
         # the imprints measured on the retrace too and their corners averaged where that is done, else moved back
         # by the lag; the map shown moved back by the lag
         if (other := _other_direction(img, imps, floor, spec)) is not None:
+            _floor_reached(imps, other, lag_px * px, px, say, name, info)
             imps, both = pair_directions(imps, other, lag_px * px, px)
             info["n_both_directions"] = both
             say(f"{name}: {both} of {sum(m is not None for m in imps)} imprint(s) measured on the retrace too: "
@@ -53,6 +55,20 @@ def afm_map(img: Image, spec, say, info: dict) -> tuple:
         image = unlag(image, lag_px)
     info.update(noise_nm=lv.noise_nm, tilt_deg=lv.tilt_deg, bow_nm=lv.bow_nm, n_scar_px=lv.n_scar_px)
     return imps, floor, image
+
+
+def _floor_reached(trace, retrace, lag_um, px, say, name, info):
+    """Whether both scan directions reached the imprints' floors (``info["floor_separation_px"]``, the largest of
+    :func:`markcal.stages.scan_lag.floor_separations_px`; ``info["floor_missed"]``: it is
+    :data:`~markcal.stages.scan_lag.FLOOR_MISSED_PX` or more, the depths are lower bounds)."""
+    if not (seps := floor_separations_px(trace, retrace, lag_um, px)):
+        return
+    info["floor_separation_px"] = sep = max(seps)
+    info["floor_missed"] = sep >= FLOOR_MISSED_PX
+    if info["floor_missed"]:
+        say(f"{name}: the trace's floor lies {sep:.1f} px right of the retrace's beyond the lag: the tip fell slower "
+            "than the facets (scan too fast for the z loop) and reached the floor on neither, depths are lower "
+            "bounds")
 
 
 def _afm_imprint(lv, px, r, c, rad, local_level=True, plateau=None):
