@@ -12,7 +12,8 @@ import os
 import numpy as np
 
 from markcal.pipeline.flows.indents import DIAGONALS_DIFFER_PCT
-from markcal.reports.html import data_files_footer, esc, img, new_figure, num, page, png_b64, table
+from markcal.reports.html import (arrow_key, arrow_scale, data_files_footer, drawable, esc, img, new_figure,
+                                  nice_number, num, page, png_b64, table)
 from markcal.stages.indent_om import RESOLUTION_RADII
 
 __all__ = ["indents_report_html"]
@@ -120,7 +121,7 @@ def _positions(res):
     ok = np.isfinite(t["dx_um"])
     if not ok.any():
         return "<p>No array spec: no positional errors (give <code>--array ARRAY.toml</code>).</p>"
-    fig = new_figure(8.5, 3.4)
+    fig = new_figure(11.5, 4.2)
     ax = fig.add_subplot(121)
     k = np.arange(ok.sum())
     ax.plot(k, 1000 * t["dx_um"][ok], "o-", ms=3, label="dx")
@@ -130,17 +131,50 @@ def _positions(res):
     ax.set_xlabel("imprint (file order)")
     ax.set_ylabel("error (nm)")
     ax.legend(fontsize=8, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)  # above the data
-    ax2 = fig.add_subplot(122)
-    ax2.scatter(1000 * t["dx_um"][ok], 1000 * t["dy_um"][ok], s=10)
-    ax2.add_patch(__import__("matplotlib.patches", fromlist=["Circle"]).Circle((0, 0), 100, fill=False, color="r",
-                                                                               ls="--", lw=0.6))
-    ax2.set_aspect("equal", "datalim")
-    ax2.set_xlabel("dx (nm)")
-    ax2.set_ylabel("dy (nm)")
-    fig.subplots_adjust(wspace=0.35)              # "dy (nm)" clear of the left panel
+    name, mag = _error_field(fig.add_subplot(122), res.files)
+    fig.subplots_adjust(wspace=0.3)
     return img(png_b64(fig), "positional errors",
                "Positional errors after rigid registration of each array to its nominal grid: registered measured "
-               "minus nominal (paper Fig. 9); dashed: ±100 nm.")
+               f"minus nominal (paper Fig. 9); dashed: ±100 nm. Right: the same errors as arrows at each imprint of "
+               f"<code>{esc(name)}</code> (the file with the largest RMS error), <b>magnified {mag:g}×</b>.")
+
+
+def _error_field(ax, files) -> tuple:
+    """Arrows of the positional errors at their imprints, in the map's frame (y down), for the file with the largest
+    RMS error; returns its name and the arrows' magnification."""
+    def rms(f):
+        dx, dy = np.asarray(f.table["dx_um"], float), np.asarray(f.table["dy_um"], float)
+        return float(np.nanmean(dx ** 2 + dy ** 2)) if np.isfinite(dx).any() else -1.0
+    worst = max(files, key=rms)
+    x, y, dx, dy = (np.asarray(worst.table[c], float) for c in ("x_um", "y_um", "dx_um", "dy_um"))
+    ok = np.isfinite(dx) & np.isfinite(dy)
+    x, y, dx, dy = x[ok], y[ok], dx[ok], dy[ok]
+    length = np.hypot(dx, dy)
+    pitch = _spacing_um(x, y)
+    mag = arrow_scale(pitch, float(length.max()))
+    q = ax.quiver(x, y, 1000 * dx, 1000 * dy, 1000 * length, angles="xy", scale_units="xy", scale=1000.0 / mag,
+                  cmap="viridis", width=0.005)
+    ax.figure.colorbar(q, ax=ax, shrink=0.85, pad=0.02).set_label("|error| (nm)")
+    ax.set_aspect("equal")
+    pad = 0.6 * pitch
+    ax.set_xlim(x.min() - pad, x.max() + pad)
+    ax.set_ylim(y.max() + pad, y.min() - pad)                     # the map's frame: y down
+    key = nice_number(0.6 * float(length.max()) * 1000) if length.max() > 0 else 10.0
+    arrow_key(ax, q, key, f"{key:g} nm, ×{mag:g}")
+    ax.set_xlabel("x (µm)")
+    ax.set_ylabel("y (µm)")
+    name = os.path.basename(worst.source)
+    ax.set_title(drawable(name), fontsize=9)
+    return name, mag
+
+
+def _spacing_um(x, y) -> float:
+    """Median distance from each imprint to its nearest neighbour (µm); 1 for a single imprint."""
+    if len(x) < 2:
+        return 1.0
+    d = np.hypot(x[:, None] - x[None, :], y[:, None] - y[None, :])
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
 
 
 def _judged(f):

@@ -467,3 +467,27 @@ def test_stray_dots_between_imprints_are_left_off_the_grid():
     assert np.array_equal(fit.row[:25], rr.ravel()) and np.array_equal(fit.col[:25], cc.ravel())
     assert np.all(fit.row[25:] == -1) and fit.stray[25:].all() and not fit.stray[:25].any()
     assert np.nanmax(np.hypot(fit.dx_um[:25], fit.dy_um[:25])) < 0.2
+
+
+def test_report_error_field_draws_the_worst_file_with_a_key():
+    """The positional errors as arrows: the file with the larger RMS error is drawn (b: 100 nm against a's 10 nm),
+    each arrow at its imprint, magnified so that the longest is about a third of the 8 µm pitch (20×: 0.1 µm
+    drawn 2 µm long), with a key arrow; the report's caption names the file and the magnification."""
+    from types import SimpleNamespace
+    from markcal.reports.html import new_figure
+    from markcal.reports.indents_report import _error_field
+    gx, gy = np.meshgrid(8.0 * np.arange(3), 8.0 * np.arange(3))
+    x, y = gx.ravel() + 5.0, gy.ravel() + 5.0
+
+    def one(name, err_um):
+        t = {"x_um": x, "y_um": y, "dx_um": np.full(9, err_um), "dy_um": np.zeros(9)}
+        return SimpleNamespace(source=f"/data/{name}", table=t)
+
+    ax = new_figure(5, 4).add_subplot(111)
+    name, mag = _error_field(ax, [one("a.ibw", 0.01), one("b.ibw", 0.1)])
+    assert name == "b.ibw" and mag == 20.0
+    q = ax.collections[0]
+    assert np.allclose(q.X, x) and np.allclose(q.U, 100.0) and q.scale == pytest.approx(1000.0 / 20.0)
+    assert any("×20" in t.get_text() for t in ax.texts) or any("×20" in c.text.get_text()
+                                                                  for c in ax.artists if hasattr(c, "text"))
+    assert ax.get_ylim()[0] > ax.get_ylim()[1]                   # the map's frame: y down
