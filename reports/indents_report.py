@@ -116,6 +116,18 @@ def _profiles(files):
                "(paper Fig. 7b); 0 is the original surface.")
 
 
+def _floor_warning(files, key, amount, title, text) -> list:
+    """A warning naming the files whose ``info[key]`` is set, each with ``amount(info[key])`` (None: its floors'
+    separation in px), followed by ``text``; no warning where none is."""
+    hit = [f for f in files if f.info.get(key)]
+    if not hit:
+        return []
+    names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ("
+                      + (amount(f.info[key]) if amount else f"{f.info['floor_separation_px']:.1f} px") + ")"
+                      for f in hit)
+    return [f'<div class="warn"><b>{title}</b> in {names} {esc(text)}</div>']
+
+
 def _positions(res):
     t = res.indents
     ok = np.isfinite(t["dx_um"])
@@ -271,22 +283,15 @@ def indents_report_html(res) -> str:
             ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
-    clipped = [f for f in res.files if f.info.get("floor_clipped_px")]
-    if clipped:
-        names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ({f.info['floor_clipped_px']} px)"
-                          for f in clipped)
-        parts.append(f'<div class="warn"><b>Floor clipped:</b> in {names} that many pixels hold the map\'s lowest '
-                     "height exactly: the scanner reached the end of its Z range, so the floor is cut flat and the "
-                     "depths (and H/D) are lower bounds. The diagonals and areas do not depend on it.</div>")
-    missed = [f for f in res.files if f.info.get("floor_missed")]
-    if missed:
-        names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ({f.info['floor_separation_px']:.1f} px)"
-                          for f in missed)
-        parts.append(f'<div class="warn"><b>Floor not reached:</b> in {names} the trace\'s deepest point lies that '
-                     "far right of the retrace's, beyond the z loop's lag. The tip fell more slowly than the facets "
-                     "and met the far facet above the floor on both scan directions, so the depths (and H/D) are "
-                     "lower bounds. Scan more slowly or raise the loop's gains. The diagonals, taken from both "
-                     "directions, do not depend on it.</div>")
+    parts += _floor_warning(res.files, "floor_clipped_px", lambda v: f"{v} px", "Floor clipped:",
+                            "that many pixels hold the map's lowest height exactly: the scanner reached the end of its "
+                            "Z range, so the floor is cut flat and the depths (and H/D) are lower bounds. The "
+                            "diagonals and areas do not depend on it.")
+    parts += _floor_warning(res.files, "floor_missed", None, "Floor not reached:",
+                            "the trace's deepest point lies that far right of the retrace's, beyond the z loop's lag. "
+                            "The tip fell more slowly than the facets and met the far facet above the floor on both "
+                            "scan directions, so the depths (and H/D) are lower bounds. Scan more slowly or raise the "
+                            "loop's gains. The diagonals, taken from both directions, do not depend on it.")
     unsure = [f for f in res.files if f.info.get("line_flatten_uncertain")]
     if unsure:
         names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code>: {f.info['line_flatten_short_lines']} lines"
