@@ -663,6 +663,13 @@ MUTANTS_INDENTS = [
         "new": "    return float(np.median(offsets)) if len(offsets) >= SHIFT_MIN_PAIRS else None\n",
         "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
     },
+    {   # the imprints looked for in the retrace's crop at their places in the whole map (session 29)
+        "name": "lag-array-crop-frame",
+        "file": "pipeline/flows/indents_afm.py",
+        "old": "    here = [m.moved(-c0 * px, -r0 * px) for m in pick]\n",
+        "new": "    here = pick\n",
+        "tests": ["tests/test_scan_lag.py::test_array_through_a_z_loop_moved_back_by_its_imprints_shift"],
+    },
     {   # the floors' separation without the lag taken off: every paired map's floors lie 2 lags apart (session 29)
         "name": "lag-floor-separation-with-lag",
         "file": "stages/scan_lag.py",

@@ -174,8 +174,8 @@ IMPRINT_SHIFT_SAMPLE = 5
 
 def _imprints_shift_px(img: Image, imps: list, floor: float, lag_px: float) -> float | None:
     """How far the trace's imprints lie along the fast axis (px), where the retrace is not measured whole: up to
-    :data:`IMPRINT_SHIFT_SAMPLE` imprints nearest the map's middle measured on the retrace too (levelled as the
-    trace is, only those pits measured), :func:`markcal.stages.scan_lag.imprints_shift_px`; None where that
+    :data:`IMPRINT_SHIFT_SAMPLE` imprints nearest the map's middle measured on the retrace too (the part of it round
+    them levelled as the trace is, only those pits measured), :func:`markcal.stages.scan_lag.imprints_shift_px`; None where that
     cannot be told."""
     px = img.pixel_um
     found = sel.accept_imprints(imps, px, floor, size_window_um=(0.0, np.inf))     # an array's shallow ones too
@@ -183,11 +183,18 @@ def _imprints_shift_px(img: Image, imps: list, floor: float, lag_px: float) -> f
         return None
     mid = np.array(img.shape[::-1]) * px / 2
     pick = sorted(found, key=lambda m: float(np.hypot(m.x_um - mid[0], m.y_um - mid[1])))[:IMPRINT_SHIFT_SAMPLE]
+    # only the part of the retrace round them, with two of their diagonals of surface beyond their corners
+    corners = np.vstack([np.asarray(m.corners_um, float) for m in pick]) / px
+    margin = 2.0 * max(m.d_um for m in pick) / px + abs(2 * lag_px) + 8
+    (c0, r0), (c1, r1) = np.floor(corners.min(axis=0) - margin), np.ceil(corners.max(axis=0) + margin)
+    r0, c0 = int(max(r0, 0)), int(max(c0, 0))
+    r1, c1 = int(min(r1, img.shape[0])), int(min(c1, img.shape[1]))
     try:
-        _heights, lv, _filled, _plateau = _levelled(img.other_direction, px, lambda m: None, "", {})
+        _heights, lv, _filled, _plateau = _levelled(img.other_direction[r0:r1, c0:c1], px, lambda m: None, "", {})
     except MarkcalError:
         return None
-    return imprints_shift_px(pick, _afm_imprints(lv, px, at=pick), lag_px * px, px)
+    here = [m.moved(-c0 * px, -r0 * px) for m in pick]
+    return imprints_shift_px(here, _afm_imprints(lv, px, at=here), lag_px * px, px)
 
 
 def _other_direction(img: Image, imps: list, floor: float, spec) -> list | None:
