@@ -117,14 +117,12 @@ def _profiles(files):
 
 
 def _floor_warning(files, key, amount, title, text) -> list:
-    """A warning naming the files whose ``info[key]`` is set, each with ``amount(info[key])`` (None: its floors'
-    separation in px), followed by ``text``; no warning where none is."""
+    """A warning naming the files whose ``info[key]`` is set, each with ``amount(info)``, followed by ``text``; no
+    warning where none is."""
     hit = [f for f in files if f.info.get(key)]
     if not hit:
         return []
-    names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ("
-                      + (amount(f.info[key]) if amount else f"{f.info['floor_separation_px']:.1f} px") + ")"
-                      for f in hit)
+    names = ", ".join(f"<code>{esc(os.path.basename(f.source))}</code> ({amount(f.info)})" for f in hit)
     return [f'<div class="warn"><b>{title}</b> in {names} {esc(text)}</div>']
 
 
@@ -283,11 +281,12 @@ def indents_report_html(res) -> str:
             ("runtime", num(s["runtime_s"], "s"))]
     rows = [r for r in rows if r[1].replace("–", "").replace("/", "").strip()]     # no "–" rows (AFM-only on OM)
     parts.append(table(["quantity", "value"], rows))
-    parts += _floor_warning(res.files, "floor_clipped_px", lambda v: f"{v} px", "Floor clipped:",
+    parts += _floor_warning(res.files, "floor_clipped_px", lambda i: f"{i['floor_clipped_px']} px", "Floor clipped:",
                             "that many pixels hold the map's lowest height exactly: the scanner reached the end of its "
                             "Z range, so the floor is cut flat and the depths (and H/D) are lower bounds. The "
                             "diagonals and areas do not depend on it.")
-    parts += _floor_warning(res.files, "floor_missed", None, "Floor not reached:",
+    parts += _floor_warning(res.files, "floor_missed", lambda i: f"{i['floor_separation_px']:.1f} px",
+                            "Floor not reached:",
                             "the trace's deepest point lies that far right of the retrace's, beyond the z loop's lag. "
                             "The tip fell more slowly than the facets and met the far facet above the floor on both "
                             "scan directions, so the depths (and H/D) are lower bounds. Scan more slowly or raise the "

@@ -175,8 +175,8 @@ IMPRINT_SHIFT_SAMPLE = 5
 def _imprints_shift_px(img: Image, imps: list, floor: float, lag_px: float) -> float | None:
     """How far the trace's imprints lie along the fast axis (px), where the retrace is not measured whole: up to
     :data:`IMPRINT_SHIFT_SAMPLE` imprints nearest the map's middle measured on the retrace too (the part of it round
-    them levelled as the trace is, only those pits measured), :func:`markcal.stages.scan_lag.imprints_shift_px`; None where that
-    cannot be told."""
+    them levelled as the trace is, only those pits measured), :func:`markcal.stages.scan_lag.imprints_shift_px`;
+    None where that cannot be told."""
     px = img.pixel_um
     found = sel.accept_imprints(imps, px, floor, size_window_um=(0.0, np.inf))     # an array's shallow ones too
     if IMPRINT_SHIFT_SAMPLE == 0 or len(found) < SHIFT_MIN_PAIRS:
