@@ -26,7 +26,9 @@ def _numbers(f, k):
              f"{num(t['diagonal_difference_pct'][k], '')} % of d"),
             ("projected contact area", num(t["area_um2"][k], "µm²")),
             ("chipped beside the edges (not in the area)", num(t["chipped_area_um2"][k], "µm²")),
-            ("depth (far-field plane to measured floor)", num(t["depth_nm"][k], "nm")),
+            ("depth (far-field plane to measured floor)", num(t["depth_nm"][k], "nm")
+             + (" (a lower bound: the floor was cut flat)" if f.info.get("floor_clipped_px") else "")
+             + (" (a lower bound: neither scan direction reached the floor)" if f.info.get("floor_missed") else "")),
             ("apex depth (facet model)", num(t["apex_depth_nm"][k], "nm")),
             ("H/D", num(t["hd_ratio"][k], "")),
             ("Vickers hardness", num(t["hv"][k], "HV") if np.isfinite(t["hv"][k]) else "– (give --load-mN)"),

@@ -160,6 +160,7 @@ def test_floor_clipped_by_the_z_range(tmp_path, seed):
         assert main(["indents", gsf, "--out", str(tmp_path / "out"), "--quiet"]) == 0
         html = (tmp_path / "out" / "report.html").read_text()
         assert "Floor clipped:" in html and "lower bounds" in html
+        assert "(a lower bound: the floor was cut flat)" in html          # the imprint's depth row too
 
 
 def test_floor_clipped_deep_still_measured(tmp_path):

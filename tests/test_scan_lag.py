@@ -434,7 +434,8 @@ def test_floor_not_reached_where_the_tip_falls_slower_than_the_facets(tmp_path, 
     assert summary["n_files_floor_missed"] == 0
     out = tmp_path / "o"
     assert main(["indents", str(tmp_path / f"d{slow}.ibw"), "--out", str(out), "--quiet"]) == 0
-    assert "Floor not reached:" in (out / "report.html").read_text()
+    html = (out / "report.html").read_text()
+    assert "Floor not reached:" in html and "(a lower bound: neither scan direction reached the floor)" in html
     assert json.loads((out / "summary.json").read_text())["n_files_floor_missed"] == 1
 
 
