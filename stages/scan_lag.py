@@ -337,8 +337,9 @@ def imprints_shift_px(trace: list, retrace: list, lag_um: float, pixel_um: float
     """How far the trace's imprints lie along the fast axis (px, +x): half the median x offset of their centres from
     the retrace's imprints at their places (:func:`_matches`); None where under :data:`SHIFT_MIN_PAIRS` pair.
 
-    A loop whose proportional path follows short slopes moves a small imprint less than a ramp's lag (3 µm
-    imprints 30 px across: about 0.2 px for ramp lags of 1.3-1.7 px; ``docs/indents.md``, session 28)."""
+    A loop moves a short imprint by other than a ramp's lag, and on a sparse array the crossings' lag rests on few
+    slopes (the bench's arrays through a PI loop: 1 µm imprints 10 px across moved 0.93-1.47 px for ramp lags of
+    1.0-1.9 px, and one map's crossings read 0.41 px for 1.91; ``docs/indents.md``, sessions 28-29)."""
     offsets = [(m.x_um - r.x_um) / pixel_um for m, r in _matches(trace, retrace, lag_um, pixel_um) if r is not None]
     return float(np.median(offsets)) / 2 if len(offsets) >= SHIFT_MIN_PAIRS else None
 
