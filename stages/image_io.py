@@ -159,9 +159,14 @@ def read_image(path, pixel_size_um: float | None = None, kind: str | None = None
         px = float(pixel_size_um)
         meta = dict({k: v for k, v in meta.items() if k != "pixel_problem"}, pixel_source="override")
     if isinstance(px, tuple):
+        # the other scan direction resampled alike: along y (fewer lines than points, the usual case) the fast axis
+        # and the z loop's lag along it are untouched; along x both directions' lag is read in the new pixels
+        if other is not None and np.shape(other) == data.shape:
+            other = _square_pixels(np.asarray(other, np.float64), *px, meta, path)[0]
+        else:
+            other = None
         data, px, meta = _square_pixels(data, *px, meta, path)
         fin = np.isfinite(data)
-        other = None                     # resampled along one axis: the two directions are not compared
     if px is None or not np.isfinite(px) or px <= 0:
         raise MarkcalError(f"{meta.get('pixel_problem', 'image has no pixel size')}: give --pixel-size-um", path)
     if kind is not None:
