@@ -300,13 +300,16 @@ def read_csv(path) -> dict:
     return out
 
 
-def _jsonable(o):
+def jsonable(o):
+    """``o`` with numpy arrays, scalars and tuples made plain JSON values (lists, int, float, bool)."""
     if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
+        return {str(k): jsonable(v) for k, v in o.items()}
     if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
+        return [jsonable(v) for v in o]
     if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
+        return jsonable(o.tolist())
+    if isinstance(o, np.bool_):
+        return bool(o)
     if isinstance(o, np.integer):
         return int(o)
     if isinstance(o, (float, np.floating)):
@@ -315,7 +318,7 @@ def _jsonable(o):
 
 
 def write_json(path, obj) -> None:
-    atomic_write_text(path, json.dumps(_jsonable(obj), indent=2) + "\n")
+    atomic_write_text(path, json.dumps(jsonable(obj), indent=2) + "\n")
 
 
 def write_ply(path, xyz_mm: np.ndarray, intensity: np.ndarray) -> None:
