@@ -95,7 +95,7 @@ def main(argv=None):
                          "same optics)")
     ap.add_argument("--lag-seeds", type=int, default=0,
                     help="5 x 5 AFM arrays scanned both ways through a PI z loop (fixtures z_loop_scans), with the "
-                         "spec: positions moved back by the lag, this code's and the slopes' correlation's")
+                         "spec, against the same maps without the loop")
     ap.add_argument("--dense-seeds", type=int, default=0,
                     help="dense AFM arrays (5 x 5 to 12 x 12, imprints 1.5-4 diameters apart) on seeds 1..N")
     ap.add_argument("--om-speed-seeds", type=int, default=0,
@@ -377,14 +377,14 @@ def _dense_sweep(a, tmp):
 
 
 def _lag_sweep(a, tmp):
-    """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: every imprint of
-    the trace measured on the retrace too, centres and corners the means of both (those measured one way only
-    moved back by the imprints' own shift). The same maps without the loop (the surface as rendered, trace only)
-    in the same run: the loop should cost nothing."""
+    """AFM arrays scanned through a z loop, trace and retrace in one IBW, measured with the spec: on the trace, the
+    positions moved back by the imprints' own shift (five of them measured on the retrace too; summary.json
+    ``imprint_shift_px``). The same maps without the loop (the surface as rendered, trace only) in the same run:
+    the loop should cost nothing."""
     from markcal.fixtures.indent_afm_feedback import z_loop_scans
     print(f"\nAFM arrays through a z loop (5 x 5, 512 x 512), seeds 1..{a.lag_seeds}, with the spec; goals: centre RMS "
           "15 nm, diameter RMS 20 nm")
-    print("seed  ramp_lag_px | loop: lag_px  paired  centre_rms_nm  x_bias_nm  diam_rms_nm  diam_median_nm | "
+    print("seed  ramp_lag_px | loop: lag_px  shift_px  centre_rms_nm  x_bias_nm  diam_rms_nm  diam_median_nm | "
           "no loop: centre_rms_nm  diam_rms_nm")
     rows = []
     for seed in range(1, a.lag_seeds + 1):
@@ -404,7 +404,7 @@ def _lag_sweep(a, tmp):
                1000 * np.sqrt(np.mean(f[:, 0] ** 2)), 1000 * np.sqrt(np.mean(f[:, 1] ** 2))]
         rows.append(row)
         print(f"{seed:4d} {loop['lag_px']:12.2f} | {res.summary.get('scan_lag_px') or 0.0:12.2f} "
-              f"{res.summary.get('n_imprints_both_directions') or 0:7d} {row[0]:14.1f} {row[1]:10.1f} {row[2]:12.1f} "
+              f"{res.summary.get('imprint_shift_px') or float('nan'):9.2f} {row[0]:14.1f} {row[1]:10.1f} {row[2]:12.1f} "
               f"{row[3]:15.1f} | {row[4]:22.1f} {row[5]:12.1f}", flush=True)
     c = np.array(rows)
     print(f"through the loop: centre RMS within 15 nm {np.mean(c[:, 0] <= 15) * 100:.0f} %, diameter RMS within 20 nm "
