@@ -3,7 +3,8 @@ original surface, and radial cracks that would carry a corner out along them.
 
 - :func:`fill_cracks`: narrow grooves (cracks, scratches) lifted to their banks before the boundary is found;
 - :func:`corner_on_ray`: a coarse corner (the contact boundary's extreme point along a diagonal) refined to
-  where a V fitted to the valley's own pixels crosses the surface level;
+  where a V fitted to the valley's walls crosses the surface level (the surface just beyond the corner, or the
+  bottom of a crease there between pile-up lobes: :func:`crease_beyond`);
 - :func:`unless_crack`: the corner taken back to the valley's own end (the kink where its rise ends on the
   valley's bottom profile) when the boundary ran out along a crack wider than the fill, or past a chip;
 - :func:`tongue_mask`: the pixels of those tongues, lifted out of the contact boundary.
@@ -18,13 +19,14 @@ from scipy import ndimage
 from .cv_filters import grey_close
 from .indent_level import in_cracks
 
-__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "fill_cracks", "region_pts", "surface_beyond", "tongue_mask",
-           "unless_crack"]
+__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "crease_beyond", "fill_cracks", "region_pts",
+           "surface_beyond", "tongue_mask", "unless_crack"]
 
 CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
 BEYOND_MAX_SLOPES = 2.0      # the surface beyond a corner lies within this many facet slopes (nm per px) under 0
+BOTTOM_PX = 1.0
 V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
 
 
@@ -87,13 +89,20 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     at = length + (level - k[0]) / k[1]
     if not abs(at - length) <= reach:
         return None
+    # the walls without the V's bottom, which a z loop scanning across the valley (and the tip) rounds and lifts:
+    # the N and S corners of feedback seeds 1-40 read 0.13-0.29 px short with it, -0.04 to +0.10 px without
+    keep = (~deep if deep.any() and (~deep).sum() >= 15 else np.ones(len(s), bool)) & (np.abs(t - k[4]) > BOTTOM_PX)
+    k2 = _v_fit(s[keep] - length, t[keep], z[keep], t0=k[4]) if keep.sum() >= 15 else None
+    if k2 is not None and k2[1] > 0.2 * slope_floor and k2[2] > 0:
+        return length + (level - k2[0]) / k2[1], float(k2[1])
     return at, float(k[1])
 
 
-def _v_fit(s, t, z):
-    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid: (a, b, c, f, t0)."""
+def _v_fit(s, t, z, t0=None):
+    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid (or given): (a, b, c, f,
+    t0)."""
     # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
-    t0 = np.arange(-0.75, 0.76, 0.05)[:, None]
+    t0 = np.arange(-0.75, 0.76, 0.05)[:, None] if t0 is None else np.array([[float(t0)]])
     a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s, (len(t0), len(s))),
                   np.abs(t - t0), t - t0], axis=-1)
     ata = np.einsum("kni,knj->kij", a, a)
@@ -118,7 +127,9 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
     (:func:`surface_beyond`; pile-up vanishes at a Vickers imprint's corners, and its tails, a bow or drifting
     lines left in put the map's zero above the surface there: d +0.6 to +1.5 % on feedback-renderer seeds), else
     0; where it lies above (a rim round the corners), or more than ``BEYOND_MAX_SLOPES`` facet slopes below (the
-    window in a chip, a crack or the valley), 0 all the same. Where that fit fails, a straight line
+    window in a chip, a crack or the valley), 0 all the same. Where pile-up lobes on both edges leave a crease beyond
+    the corner (:func:`crease_beyond`), the window's median is lobe: the crease's bottom is the surface (four-edge
+    pile-up on the scanner renderer: corners 0.7-2 px out at 0). Where that fit fails, a straight line
     through the interpolated profile of the last few pixels before the coarse corner gives it. Returns the
     corner (row, col) and the V's slope along the valley (nm per px; None without the V).
     """
@@ -128,9 +139,17 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
         return np.asarray(rc1, float), None
     e = _aim_at_valley(zc, rc0, v / length, length)
     level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0
+    beyond = level
     # only a surface below 0 is taken, then with a crack's pixels left out (which only raises it: the grey closing
     # is not needed where the plain median lies above 0)
     level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if level < 0.0 else 0.0
+    # between pile-up lobes on both edges the surface beyond is a crease, its bottom the surface, its walls lobe
+    # (taken in part near each threshold, so that a noise draw does not flip the corner)
+    crease = crease_beyond(zc, rc0 + length * e, e, slope_floor, noise) if local_level else None
+    if crease is not None:
+        under = max(3.0 * noise, 0.5 * slope_floor)
+        held = crease[1] * np.clip((beyond - crease[0]) / under - 0.5, 0.0, 1.0)
+        level += held * (min(crease[0], 0.0) - level)
     if level < -BEYOND_MAX_SLOPES * slope_floor:
         level = 0.0                       # no surface: the window reached into a chip, a crack or the valley
     fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
@@ -190,6 +209,41 @@ def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, w
     # where the valley's own V (fitted to its pixels, a crack down it left out) reaches that level
     fit = _valley_crossing(zr, pts[j] - 20.0 * e, e, 20.0, slope_floor, noise, level, reach=shift + 3.0)
     return pts[j] + ((fit[0] - 20.0) if fit is not None else shift) * e, True
+
+
+def crease_beyond(zc, rc, e, slope_floor, noise, window_px=14.0, step_px=0.25, from_px=4.0):
+    """The bottom (nm) of a crease running on beyond a corner at ``rc`` along ``e``, between pile-up lobes on both
+    edges, and how far it holds as one (0-1).
+
+    The bottom is the median of the lowest points across the ray (within 2 px of it), ``from_px`` to ``window_px`` px
+    on, of those whose sides rise gradually (at 1 px under 0.45 of the rise at 4 px, a V: a crack's narrow groove
+    rises most of the way to its banks within 1 px). It holds fully from 12 such points (none under 4), and where
+    it lies no more than ``tol = max(3 noise, slope_floor / 4)`` under the highest point of the track before
+    ``from_px`` (none from ``2 tol`` under): the valley's bottom rises into a crease and stays there, while where
+    it rose to the surface and dropped again, the valley ended and a crack or a chip runs on. Linear in between,
+    so that a noise draw does not flip the corner. None beyond the map."""
+    ny, nx = zc.shape
+    nrm = np.array([-e[1], e[0]])
+    bottom, top, n = [], -np.inf, 0
+    for k in range(int(window_px / step_px) + 1):
+        p = np.asarray(rc, float) + k * step_px * e
+        if not (4 <= p[0] <= ny - 5 and 4 <= p[1] <= nx - 5):
+            break
+        p, _ = _lowest_across(zc, p, e, half_px=2.0)
+        q = p + np.array([0.0, -1.0, 1.0, -4.0, 4.0])[:, None] * nrm
+        z = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
+        if k * step_px < from_px:
+            top = max(top, float(z[0]))
+            continue
+        n += 1
+        if 0.5 * (z[1] + z[2]) - z[0] < 0.45 * (0.5 * (z[3] + z[4]) - z[0]):
+            bottom.append(float(z[0]))
+    if not bottom or n < 8:
+        return None
+    level = float(np.median(bottom))
+    tol = max(3.0 * noise, 0.25 * slope_floor)
+    held = np.clip((len(bottom) - 4) / 8.0, 0.0, 1.0) * np.clip((level - top) / tol + 2.0, 0.0, 1.0)
+    return level, float(held)
 
 
 def surface_beyond(zr, rc, e, window_px=12.0, sigma=None):

@@ -16,8 +16,8 @@ from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.image_io import read_image
 
 
-def _measure(tmp_path, seed):
-    r = render_scanner(seed)
+def _measure(tmp_path, seed, **switches):
+    r = render_scanner(seed, **switches)
     res = run_indents([write_ibw(r, str(tmp_path / f"s{seed}.ibw"))], None, IndentsOptions())
     t, tab = r.truth, res.indents
     k = int(np.argmin(np.hypot(tab["x_um"] - t["centre_um"][0], tab["y_um"] - t["centre_um"][1])))
@@ -45,11 +45,28 @@ def test_scanner_render_within_the_goals(tmp_path, seed):
     t, px = r.truth, r.pixel_um[0]
     assert abs(tab["d_um"][k] - t["d_um"]) <= max(0.005 * t["d_um"], px)
     assert abs(tab["area_um2"][k] / t["area_um2"] - 1) <= 0.01
+    assert _worst_corner_px(tab, k, t, px) <= 1.5
+    border = border_plane_depth_nm(1e9 * np.asarray(r.layers["HeightTrace"], float))
+    assert abs(tab["depth_nm"][k] / border - 1) <= 0.10
+    assert abs(res.summary["scan_lag_px"] - t["instrument"]["feedback"]["lag_px"]) <= 0.3
+
+
+def _worst_corner_px(tab, k, t, px):
     o = np.radians(tab["orientation_deg"][k])
     e1, e2 = np.array([np.cos(o), np.sin(o)]), np.array([-np.sin(o), np.cos(o)])
     c, h1, h2 = np.array([tab["x_um"][k], tab["y_um"][k]]), tab["diag1_um"][k] / 2, tab["diag2_um"][k] / 2
     mc, tc = np.array([c + h1 * e1, c + h2 * e2, c - h1 * e1, c - h2 * e2]), np.array(t["corners_um"])
-    assert min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) <= 1.5 * px
-    border = border_plane_depth_nm(1e9 * np.asarray(r.layers["HeightTrace"], float))
-    assert abs(tab["depth_nm"][k] / border - 1) <= 0.10
-    assert abs(res.summary["scan_lag_px"] - t["instrument"]["feedback"]["lag_px"]) <= 0.3
+    return min(np.max(np.hypot(*(mc[list(p)] - tc).T)) for p in itertools.permutations(range(4))) / px
+
+
+@pytest.mark.parametrize("seed", [2, 10])
+def test_pile_up_on_all_four_edges_corners_at_the_creases_bottom(tmp_path, seed):
+    """Seeds 2 and 10, the sample as drawn (lumpy pile-up on all four edges, 20-25 % of the depth, bowed edges,
+    cracks, roughness) imaged without the instrument's effects: the lobes vanish on the diagonals, so a crease runs
+    on beyond each corner with its bottom on the surface, while their tails lift the map's zero. Corners were carried
+    to that zero or the window's median: d +0.87 and +0.84 %. At the crease's bottom: +0.05 and +0.13 %, corners
+    0.28 and 0.27 px; held to the rendered-imprint goals for d and corners."""
+    r, _res, tab, k = _measure(tmp_path, seed, instrument=False)
+    t, px = r.truth, r.pixel_um[0]
+    assert abs(tab["d_um"][k] - t["d_um"]) <= max(0.005 * t["d_um"], px), tab["d_um"][k] / t["d_um"] - 1
+    assert _worst_corner_px(tab, k, t, px) <= 1.5
