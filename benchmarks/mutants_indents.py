@@ -791,21 +791,21 @@ MUTANTS_INDENTS = [
     {   # the corners carried to the map's zero, not to the surface beyond them (session 22)
         "name": "corners-at-zero-not-the-surface-beyond",
         "file": "stages/indent_corners.py",
-        "old": "    level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0\n",
+        "old": "    level = level_beyond(zc, zr, rc0 + length * e, e, slope_floor, noise) if local_level else 0.0\n",
         "new": "    level = 0.0\n",
         "tests": ["tests/test_indent_corners.py", _FB_BEYOND],
     },
     {   # a surface above the map's zero beyond the corners taken too (a rim round them) (session 22)
         "name": "corners-surface-beyond-above-zero",
         "file": "stages/indent_corners.py",
-        "old": "    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if level < 0.0 else 0.0\n",
-        "new": "    level = surface_beyond(zr, rc0 + length * e, e, sigma=noise) if local_level else 0.0\n",
+        "old": "    level = min(surface_beyond(zr, rc, e, sigma=noise), 0.0) if beyond < 0.0 else 0.0\n",
+        "new": "    level = surface_beyond(zr, rc, e, sigma=noise)\n",
         "tests": ["tests/test_indent_corners.py", _SINGLE],
     },
     {   # the corners carried to the map's zero or the window's median where a crease runs on between lobes (session 30)
         "name": "corners-crease-not-taken",
         "file": "stages/indent_corners.py",
-        "old": "    crease = crease_beyond(zc, rc0 + length * e, e, slope_floor, noise) if local_level else None\n",
+        "old": "    crease = crease_beyond(zc, rc, e, slope_floor, noise)\n",
         "new": "    crease = None\n",
         "tests": ["tests/test_indent_corners.py", "tests/test_scanner_renders.py"],
     },
@@ -830,6 +830,13 @@ MUTANTS_INDENTS = [
         "new": "        held = float(crease[1] > 0.5 and beyond - crease[0] > under)\n",
         "tests": ["tests/test_indent_corners.py"],
     },
+    {   # the contact boundary drawn at the map's zero, not at the surface's level the corners found (session 30)
+        "name": "single-boundary-at-the-zero",
+        "file": "stages/indent_single.py",
+        "old": "    surface = min(float(np.mean(surface_nm)), 0.0)\n",
+        "new": "    surface = 0.0\n",
+        "tests": ["tests/test_scanner_renders.py"],
+    },
     {   # the valley's V fitted with its rounded bottom (session 30)
         "name": "corners-v-with-its-bottom",
         "file": "stages/indent_corners.py",
@@ -847,8 +854,8 @@ MUTANTS_INDENTS = [
     {   # a window in a chip or crack taken as the surface beyond the corner (session 22)
         "name": "corners-surface-beyond-unbounded",
         "file": "stages/indent_corners.py",
-        "old": "    if level < -BEYOND_MAX_SLOPES * slope_floor:\n",
-        "new": "    if False:\n",
+        "old": "    return level if level >= -BEYOND_MAX_SLOPES * slope_floor else 0.0\n",
+        "new": "    return level\n",
         "tests": [_FB_BEYOND, "tests/test_feedback_renders.py::test_boundary_that_reached_the_border_on_the_pile_ups_tails_is_measured_whole"],
     },
     {   # the window's plane through a far field on one side of the pit, tilt and all (session 23)

@@ -19,8 +19,8 @@ from scipy import ndimage
 from .cv_filters import grey_close
 from .indent_level import in_cracks
 
-__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "crease_beyond", "fill_cracks", "region_pts",
-           "surface_beyond", "tongue_mask", "unless_crack"]
+__all__ = ["VALLEY_END_SLOPES", "bilinear", "corner_on_ray", "crease_beyond", "fill_cracks", "level_beyond",
+           "region_pts", "surface_beyond", "tongue_mask", "unless_crack"]
 
 CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slopes (nm per px) is a crack
 CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
@@ -123,42 +123,46 @@ def corner_on_ray(zc, rc0, rc1, slope_floor, noise, zr, local_level=True):
 
     The ray is aimed along the valley between the two facets; the corner (where the valley meets the
     original level) is where a V fitted to the valley's own pixels crosses the surface (:func:`_valley_crossing`):
-    with ``local_level``, the surface just beyond the corner where it lies below the map's zero
-    (:func:`surface_beyond`; pile-up vanishes at a Vickers imprint's corners, and its tails, a bow or drifting
-    lines left in put the map's zero above the surface there: d +0.6 to +1.5 % on feedback-renderer seeds), else
-    0; where it lies above (a rim round the corners), or more than ``BEYOND_MAX_SLOPES`` facet slopes below (the
-    window in a chip, a crack or the valley), 0 all the same. Where pile-up lobes on both edges leave a crease beyond
-    the corner (:func:`crease_beyond`), the window's median is lobe: the crease's bottom is the surface (four-edge
-    pile-up on the scanner renderer: corners 0.7-2 px out at 0). Where that fit fails, a straight line
+    with ``local_level``, the surface just beyond the corner (:func:`level_beyond`; pile-up vanishes at a Vickers
+    imprint's corners, and its tails, a bow or drifting lines left in put the map's zero above the surface there:
+    d +0.6 to +1.5 % on feedback-renderer seeds, and between lobes on all four edges, +0.9 to +2.6 % on the scanner
+    renderer's), else 0. Where that fit fails, a straight line
     through the interpolated profile of the last few pixels before the coarse corner gives it. Returns the
-    corner (row, col) and the V's slope along the valley (nm per px; None without the V).
+    corner (row, col), the V's slope along the valley (nm per px; None without the V) and the surface's level the
+    V was carried to (nm; 0 without the V).
     """
     v = np.asarray(rc1, float) - rc0
     length = float(np.hypot(*v))
     if length < 4:
-        return np.asarray(rc1, float), None
+        return np.asarray(rc1, float), None, 0.0
     e = _aim_at_valley(zc, rc0, v / length, length)
-    level = surface_beyond(zr, rc0 + length * e, e) if local_level else 0.0
-    beyond = level
+    level = level_beyond(zc, zr, rc0 + length * e, e, slope_floor, noise) if local_level else 0.0
+    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
+                           reach=2.5 + abs(level) / max(slope_floor, 1e-9), pixels_below_level=True)
+    if fit is not None:
+        return rc0 + fit[0] * e, fit[1], level
+    s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
+    corner = rc0 + s0 * e if s0 is not None else np.asarray(rc1, float)
+    return corner, None, 0.0
+
+
+def level_beyond(zc, zr, rc, e, slope_floor, noise):
+    """The original surface's level (nm) just beyond a corner at ``rc`` on the diagonal ``e``, as
+    :func:`corner_on_ray` takes it: the window's median (:func:`surface_beyond`) where it lies below 0, a crack's
+    pixels left out; else 0 (a rim round the corners); the bottom of a crease between pile-up lobes
+    (:func:`crease_beyond`) where it lies under that median, taken in part near each threshold so that a noise draw
+    does not flip the corner; 0 where the level lies more than ``BEYOND_MAX_SLOPES`` facet slopes down (the window
+    in a chip, a crack or the valley)."""
+    beyond = surface_beyond(zr, rc, e)
     # only a surface below 0 is taken, then with a crack's pixels left out (which only raises it: the grey closing
     # is not needed where the plain median lies above 0)
-    level = min(surface_beyond(zr, rc0 + length * e, e, sigma=noise), 0.0) if level < 0.0 else 0.0
-    # between pile-up lobes on both edges the surface beyond is a crease, its bottom the surface, its walls lobe
-    # (taken in part near each threshold, so that a noise draw does not flip the corner)
-    crease = crease_beyond(zc, rc0 + length * e, e, slope_floor, noise) if local_level else None
+    level = min(surface_beyond(zr, rc, e, sigma=noise), 0.0) if beyond < 0.0 else 0.0
+    crease = crease_beyond(zc, rc, e, slope_floor, noise)
     if crease is not None:
         under = max(3.0 * noise, 0.5 * slope_floor)
         held = crease[1] * np.clip((beyond - crease[0]) / under - 0.5, 0.0, 1.0)
         level += held * (min(crease[0], 0.0) - level)
-    if level < -BEYOND_MAX_SLOPES * slope_floor:
-        level = 0.0                       # no surface: the window reached into a chip, a crack or the valley
-    fit = _valley_crossing(zr, rc0, e, length, slope_floor, noise, level,
-                           reach=2.5 + abs(level) / max(slope_floor, 1e-9), pixels_below_level=True)
-    if fit is not None:
-        return rc0 + fit[0] * e, fit[1]
-    s0 = _profile_crossing(zc, rc0, e, length, slope_floor, noise)
-    corner = rc0 + s0 * e if s0 is not None else np.asarray(rc1, float)
-    return corner, None
+    return level if level >= -BEYOND_MAX_SLOPES * slope_floor else 0.0
 
 
 def _valley_kink(zc, zr, rc0, e, start, stop, slope_floor, noise, step_px=0.5, window_px=12.0):

@@ -48,15 +48,15 @@ def test_corner_on_the_surface_beyond_it(level_nm):
     slope = 1000.0 / 40.0
     true_px = 40.0 * (1 + level_nm / 1000.0)
     coarse = np.array([c, c + true_px + 1.0])
-    got, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=True)
+    got, _, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=True)
     assert abs(got[1] - c - true_px) <= 0.1 and abs(got[0] - c) <= 0.1
-    at0, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=False)
+    at0, _, _ = corner_on_ray(zc, np.array([c, c]), coarse, slope, 0.1, z, local_level=False)
     assert at0[1] - c - true_px >= 0.5 * (40.0 - true_px)
     rim, _ = _diamond_pit(0.0)
     rim = np.where(rim >= 0.0, 15.0, rim)                               # a rim 15 nm up all round
     zc_rim = ndimage.spline_filter(rim, order=3, mode="nearest")
-    on_rim, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=True)
-    plain, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=False)
+    on_rim, _, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=True)
+    plain, _, _ = corner_on_ray(zc_rim, np.array([c, c]), np.array([c, c + 41.0]), slope, 0.1, rim, local_level=False)
     assert np.allclose(on_rim, plain)
 
 
@@ -75,7 +75,7 @@ def _corner_px(z, c, coarse_px, slope=25.0):
     from markcal.stages.indent_corners import corner_on_ray
     from scipy import ndimage
     zc = ndimage.spline_filter(z, order=3, mode="nearest")
-    got, _ = corner_on_ray(zc, np.array([c, c]), np.array([c, c + coarse_px]), slope, 0.1, z, local_level=True)
+    got, _, _ = corner_on_ray(zc, np.array([c, c]), np.array([c, c + coarse_px]), slope, 0.1, z, local_level=True)
     return got[1] - c, got[0] - c
 
 
