@@ -228,25 +228,33 @@ def crease_beyond(zc, rc, e, slope_floor, noise, window_px=14.0, step_px=0.25, f
     so that a noise draw does not flip the corner. None beyond the map."""
     ny, nx = zc.shape
     nrm = np.array([-e[1], e[0]])
-    bottom, top, n = [], -np.inf, 0
-    for k in range(int(window_px / step_px) + 1):
-        p = np.asarray(rc, float) + k * step_px * e
-        if not (4 <= p[0] <= ny - 5 and 4 <= p[1] <= nx - 5):
-            break
-        p, _ = _lowest_across(zc, p, e, half_px=2.0)
-        q = p + np.array([0.0, -1.0, 1.0, -4.0, 4.0])[:, None] * nrm
-        z = bilinear(zc, q[:, 0], q[:, 1], order=3, prefilter=False)
-        if k * step_px < from_px:
-            top = max(top, float(z[0]))
-            continue
-        n += 1
-        if 0.5 * (z[1] + z[2]) - z[0] < 0.45 * (0.5 * (z[3] + z[4]) - z[0]):
-            bottom.append(float(z[0]))
-    if not bottom or n < 8:
+    s_px = np.arange(int(window_px / step_px) + 1) * step_px
+    on = np.asarray(rc, float) + s_px[:, None] * e
+    inside = np.cumprod((on[:, 0] >= 4) & (on[:, 0] <= ny - 5) & (on[:, 1] >= 4) & (on[:, 1] <= nx - 5)) > 0
+    s_px, on = s_px[inside], on[inside]
+    # the lowest point across each step (0.25 px grid, a parabola through its neighbours), all steps at once
+    tt = np.arange(-2.0, 2.01, 0.25)
+    q = on[:, None, :] + tt[None, :, None] * nrm
+    pv = bilinear(zc, q[..., 0].ravel(), q[..., 1].ravel(), order=3, prefilter=False).reshape(q.shape[:2])
+    j_low = np.argmin(pv, axis=1)
+    j = np.clip(j_low, 1, len(tt) - 2)
+    rows = np.arange(len(j))
+    z0, zm, zp = pv[rows, j], pv[rows, j - 1], pv[rows, j + 1]
+    den = zm - 2 * z0 + zp
+    refine = (j == j_low) & (den > 0)                    # an interior lowest point (as :func:`_lowest_across`)
+    t_low = tt[j_low] + np.where(refine, 0.5 * 0.25 * (zm - zp) / np.where(refine, den, 1.0), 0.0)
+    low = on + t_low[:, None] * nrm
+    probe = low[:, None, :] + np.array([0.0, -1.0, 1.0, -4.0, 4.0])[None, :, None] * nrm
+    z = bilinear(zc, probe[..., 0].ravel(), probe[..., 1].ravel(), order=3, prefilter=False).reshape(probe.shape[:2])
+    before = s_px < from_px
+    top = float(z[before, 0].max()) if before.any() else -np.inf
+    gradual = 0.5 * (z[:, 1] + z[:, 2]) - z[:, 0] < 0.45 * (0.5 * (z[:, 3] + z[:, 4]) - z[:, 0])
+    bottom = z[~before & gradual, 0]
+    if bottom.size == 0 or (~before).sum() < 8:
         return None
     level = float(np.median(bottom))
     tol = max(3.0 * noise, 0.25 * slope_floor)
-    held = np.clip((len(bottom) - 4) / 8.0, 0.0, 1.0) * np.clip((level - top) / tol + 2.0, 0.0, 1.0)
+    held = np.clip((bottom.size - 4) / 8.0, 0.0, 1.0) * np.clip((level - top) / tol + 2.0, 0.0, 1.0)
     return level, float(held)
 
 
