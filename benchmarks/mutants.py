@@ -383,6 +383,10 @@ EQUIVALENT = {
                                        "search across, so where the trace starts matters little: feedback seeds "
                                        "1-60 d within 0.1 points (max |d| 2.00 % either way), ruled wide-crack "
                                        "seeds 1-12 within 0.01 points, the clipped-floor test passes",
+    "corners-v-narrow": "not equivalent in the strict sense, but with little effect since session 30 fits the V again "
+                        "with its bottom weighted down (a sunk-in corner's cusp no longer reads shallow): ruled seed "
+                        "127 (the test's) -0.03 -> -0.11 %, seeds 1-140 within 0.26 points of d, RMS 0.101 -> 0.093 %, "
+                        "one seed past the goal (121: -0.47 -> -0.53 %, -0.98 -> -1.09 px)",
     "corners-v-wide-in-cracks": "not equivalent in the strict sense, but without measurable effect since the facet "
                                 "slope comes from the region below half the depth (session 23): on the ruled "
                                 "renderer with wide cracks (seeds 1-12) 9 seeds identical, seeds 1, 5, 10, 11 and "

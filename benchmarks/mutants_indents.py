@@ -812,15 +812,15 @@ MUTANTS_INDENTS = [
     {   # a crack's narrow groove beyond the corner taken for a crease (session 30)
         "name": "corners-crease-narrow-groove",
         "file": "stages/indent_corners.py",
-        "old": "        if 0.5 * (z[1] + z[2]) - z[0] < 0.45 * (0.5 * (z[3] + z[4]) - z[0]):\n",
-        "new": "        if True:\n",
+        "old": "    gradual = 0.5 * (z[:, 1] + z[:, 2]) - z[:, 0] < 0.45 * (0.5 * (z[:, 3] + z[:, 4]) - z[:, 0])\n",
+        "new": "    gradual = np.ones(len(z), bool)\n",
         "tests": ["tests/test_indent_corners.py"],
     },
     {   # a crease taken where the valley's bottom rose to the surface and dropped again into a crack (session 30)
         "name": "corners-crease-after-a-dip",
         "file": "stages/indent_corners.py",
-        "old": "    held = np.clip((len(bottom) - 4) / 8.0, 0.0, 1.0) * np.clip((level - top) / tol + 2.0, 0.0, 1.0)\n",
-        "new": "    held = np.clip((len(bottom) - 4) / 8.0, 0.0, 1.0)\n",
+        "old": "    held = np.clip((bottom.size - 4) / 8.0, 0.0, 1.0) * np.clip((level - top) / tol + 2.0, 0.0, 1.0)\n",
+        "new": "    held = np.clip((bottom.size - 4) / 8.0, 0.0, 1.0)\n",
         "tests": ["tests/test_indent_corners.py"],
     },
     {   # a crease taken whole or not at all, as a noise draw falls (session 30)

@@ -91,27 +91,31 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
         return None
     # the walls without the V's bottom, which a z loop scanning across the valley (and the tip) rounds and lifts:
     # the N and S corners of feedback seeds 1-40 read 0.13-0.29 px short with it, -0.04 to +0.10 px without
-    keep = (~deep if deep.any() and (~deep).sum() >= 15 else np.ones(len(s), bool)) & (np.abs(t - k[4]) > BOTTOM_PX)
-    k2 = _v_fit(s[keep] - length, t[keep], z[keep], t0=k[4]) if keep.sum() >= 15 else None
+    # (weighted from 0 within BOTTOM_PX / 2 of it to 1 beyond 3 BOTTOM_PX / 2: a pixel's weight does not flip as a
+    # noise draw moves the bottom's offset)
+    keep = ~deep if deep.any() and (~deep).sum() >= 15 else np.ones(len(s), bool)
+    w = np.clip(np.abs(t[keep] - k[4]) / BOTTOM_PX - 0.5, 0.0, 1.0)
+    k2 = _v_fit(s[keep] - length, t[keep], z[keep], t0=k[4], w=w) if w.sum() >= 15 else None
     if k2 is not None and k2[1] > 0.2 * slope_floor and k2[2] > 0:
         return length + (level - k2[0]) / k2[1], float(k2[1])
     return at, float(k[1])
 
 
-def _v_fit(s, t, z, t0=None):
-    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid (or given): (a, b, c, f,
-    t0)."""
+def _v_fit(s, t, z, t0=None, w=None):
+    """Least-squares V z = a + b s + c |t - t0| + f (t - t0), t0 searched on a 0.05 px grid (or given), each pixel
+    weighted by ``w`` (default 1): (a, b, c, f, t0)."""
     # every offset t0 at once: normal equations (t0, 4, 4), the residual from z.z - k.(A'z)
     t0 = np.arange(-0.75, 0.76, 0.05)[:, None] if t0 is None else np.array([[float(t0)]])
+    w = np.ones(len(s)) if w is None else w
     a = np.stack([np.broadcast_to(1.0, (len(t0), len(s))), np.broadcast_to(s, (len(t0), len(s))),
                   np.abs(t - t0), t - t0], axis=-1)
-    ata = np.einsum("kni,knj->kij", a, a)
-    atz = np.einsum("kni,n->ki", a, z)
+    ata = np.einsum("kni,knj,n->kij", a, a, w)
+    atz = np.einsum("kni,n->ki", a, w * z)
     try:
         k_all = np.linalg.solve(ata, atz[..., None])[..., 0]
     except np.linalg.LinAlgError:
         return None
-    j = int(np.argmin(z @ z - np.einsum("ki,ki->k", k_all, atz)))
+    j = int(np.argmin((w * z) @ z - np.einsum("ki,ki->k", k_all, atz)))
     return np.append(k_all[j], t0[j, 0])
 
 
