@@ -26,7 +26,7 @@ CRACK_LIFT_SLOPES = 2.5      # a groove lifted by more than this many facet slop
 CRACK_TONGUE_PX = 3.0        # a corner carried out by more than this (px) beyond the valley's end: a crack
 VALLEY_END_SLOPES = 0.7      # a corner's V rising at this many facet slopes (nm per px) or more ends a valley
 BEYOND_MAX_SLOPES = 2.0      # the surface beyond a corner lies within this many facet slopes (nm per px) under 0
-BOTTOM_PX = 1.0
+BOTTOM_PX = 1.0              # the V refitted to its walls: pixels within this of its bottom weighted down
 V_WIDE_PX = 5.0              # the valley V across this distance of the diagonal, 3 px where a crack runs down it
 
 
@@ -45,7 +45,9 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     reads it high, which put corners 0.2-0.5 px short on facets of 20-25 deg. Within 3 px only, the V of a
     corner whose edges sink in (a cusp) comes out too shallow (corners 0.3-1 px short at bows of -7 %); but
     where pixels lie deep under the V (a crack down the valley) it is fitted again within 3 px, which
-    takes in less of the crack.
+    takes in less of the crack. The crossing is then taken from the V fitted again to its walls, with its offset
+    held and the pixels near its bottom (which a z loop scanning across the valley and the tip round and lift)
+    weighted down (``BOTTOM_PX``); ``reach`` is checked on the first fit.
     With ``pixels_below_level``, the V's pixels are those below ``level`` where it lies under 0 (the surface beyond
     the corner: its own pixels would bend the V), else below 0.
     Returns (crossing, the valley's slope in nm per px), or None when the pixels do not carry such a fit or
@@ -90,9 +92,9 @@ def _valley_crossing(zr, rc0, e, length, slope_floor, noise, level=0.0, reach=2.
     if not abs(at - length) <= reach:
         return None
     # the walls without the V's bottom, which a z loop scanning across the valley (and the tip) rounds and lifts:
-    # the N and S corners of feedback seeds 1-40 read 0.13-0.29 px short with it, -0.04 to +0.10 px without
-    # (weighted from 0 within BOTTOM_PX / 2 of it to 1 beyond 3 BOTTOM_PX / 2: a pixel's weight does not flip as a
-    # noise draw moves the bottom's offset)
+    # the N and S corners of feedback seeds 1-40 read 0.24 and 0.13 px short on average with it, -0.02 and +0.11 px
+    # without (weighted from 0 within BOTTOM_PX / 2 of it to 1 beyond 3 BOTTOM_PX / 2: a pixel's weight does not
+    # flip as a noise draw moves the bottom's offset)
     keep = ~deep if deep.any() and (~deep).sum() >= 15 else np.ones(len(s), bool)
     w = np.clip(np.abs(t[keep] - k[4]) / BOTTOM_PX - 0.5, 0.0, 1.0)
     k2 = _v_fit(s[keep] - length, t[keep], z[keep], t0=k[4], w=w) if w.sum() >= 15 else None
