@@ -28,7 +28,7 @@ from markcal.pipeline.flows.indents import IndentsOptions, run_indents
 from markcal.stages.errors import MarkcalError
 
 from bench_feedback import table_corners  # noqa: E402  (benchmarks/ is the script's folder)
-from bench_independent import parse_seeds  # noqa: E402
+from bench_independent import nearest_row, parse_seeds  # noqa: E402
 
 D_GOAL_PCT, D_GOAL_PX, DEPTH_GOAL_PCT, AREA_GOAL_PCT, CORNER_GOAL_PX = 0.5, 1.0, 1.0, 1.0, 1.5
 
@@ -70,8 +70,7 @@ def main(argv=None):
                 continue
             dt = time.perf_counter() - t0
             t = res.indents
-            k = int(np.argmin(np.hypot(np.asarray(t["x_um"]) - tr["centre_um"][0],
-                                       np.asarray(t["y_um"]) - tr["centre_um"][1])))
+            k = nearest_row(t, *tr["centre_um"])
             e = errors(t, k, tr, pxx)
             trace_nm = 1e9 * np.asarray(r.layers["HeightTrace"], float)
             border.append(100 * (float(t["depth_nm"][k]) / border_plane_depth_nm(trace_nm) - 1))

@@ -48,7 +48,7 @@ def measure(render, folder, name, fmt):
     if ruled:
         e = afm_errors(t, nearest_row(t, *tr["centre_um"]), tr)
         return np.array([e[key] for key in RULED_KEYS])
-    k = int(np.argmin(np.hypot(np.asarray(t["x_um"]) - tr["centre_um"][0], np.asarray(t["y_um"]) - tr["centre_um"][1])))
+    k = nearest_row(t, *tr["centre_um"])
     e = errors(t, k, tr)
     return np.array([e[key] for key in KEYS])
 
