@@ -69,7 +69,8 @@ def _map(f, m):
     ax.plot(c[:, 0], c[:, 1], "o", ms=7, mfc="none", mec="red", mew=1.5, label="corners")
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
-    ax.legend(loc="upper right", fontsize=7)
+    # above the map: an imprint that fills the field has a corner under any legend drawn inside it
+    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, fontsize=7, frameon=False)
     both = " from both scan directions, each where its scan leaves the imprint" if f.info.get("n_both_directions") else ""
     what = (f"contact boundary at the original-surface level (cyan{';' if both else ''}{both}), pile-up above 5 noise "
             "levels (green)"
@@ -138,7 +139,7 @@ def _profiles(f, m):
     else:
         ax.set_ylabel("grey value" if f.info.get("bar_rows") is not None else "grey value / illumination")
     ax.set_xlabel("distance from the middle of the diagonal (µm)")
-    ax.legend(fontsize=7)
+    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, fontsize=7, frameon=False)   # above the data
     return img(png_b64(fig), f.source + " profiles", "Profiles along both diagonals, corner to corner and 15 % beyond.")
 
 
