@@ -17,14 +17,11 @@ import argparse
 import numpy as np
 from scipy import ndimage
 
-from markcal.fixtures.indent_afm_scanner import render_scanner
+from markcal.fixtures.indent_afm_scanner import FACE_DEG, render_scanner
 from markcal.stages.indent_corners import crease_beyond, level_beyond
 from markcal.stages.indent_level import level_map
 
 from bench_independent import parse_seeds  # noqa: E402  (benchmarks/ is the script's folder)
-
-FACE_DEG = 22.0             # the renderer's facet angle: the slope (nm per px) the corner code is given
-
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -42,13 +39,13 @@ def main(argv=None):
         lv, _ = level_map(raw, px)
         surface = 1e9 * np.asarray(bare.layers["HeightTrace"], float) - (raw - lv.z_nm)
         zc = ndimage.spline_filter(np.nan_to_num(lv.z_nm), order=3, mode="nearest")
-        slope = np.tan(np.radians(FACE_DEG)) * px * 1000.0
+        slope = np.tan(np.radians(FACE_DEG)) * px * 1000.0           # the facets' slope (nm per px), as drawn
         centre = np.array(tr["centre_um"])[::-1] / px
         for k, q in enumerate(np.array(tr["corners_um"])):
             rc = q[::-1] / px
             e = (rc - centre) / np.hypot(*(rc - centre))
             pts = rc[None] + np.arange(4.0, 14.01, 0.5)[:, None] * e
-            ok = (pts >= 0).all(axis=1) & (pts[:, 0] <= 255) & (pts[:, 1] <= 255)
+            ok = (pts >= 0).all(axis=1) & (pts <= np.array(raw.shape) - 1).all(axis=1)
             if ok.sum() < 8:
                 continue
             true_nm = float(np.median(ndimage.map_coordinates(surface, pts[ok].T, order=1)))

@@ -37,6 +37,11 @@ def _numbers(f, k):
             ("cut by the border", cut)]
 
 
+def _legend_above(ax):
+    """The legend in a row above the plot: drawn inside, it hid the corner of an imprint that fills the field."""
+    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, fontsize=7, frameon=False)
+
+
 def _map(f, m):
     px = f.pixel_um
     ny, nx = f.image.shape
@@ -69,8 +74,7 @@ def _map(f, m):
     ax.plot(c[:, 0], c[:, 1], "o", ms=7, mfc="none", mec="red", mew=1.5, label="corners")
     ax.set_xlabel("x (µm)")
     ax.set_ylabel("y (µm)")
-    # above the map: an imprint that fills the field has a corner under any legend drawn inside it
-    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, fontsize=7, frameon=False)
+    _legend_above(ax)
     both = " from both scan directions, each where its scan leaves the imprint" if f.info.get("n_both_directions") else ""
     what = (f"contact boundary at the original-surface level (cyan{';' if both else ''}{both}), pile-up above 5 noise "
             "levels (green)"
@@ -139,7 +143,7 @@ def _profiles(f, m):
     else:
         ax.set_ylabel("grey value" if f.info.get("bar_rows") is not None else "grey value / illumination")
     ax.set_xlabel("distance from the middle of the diagonal (µm)")
-    ax.legend(loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, fontsize=7, frameon=False)   # above the data
+    _legend_above(ax)
     return img(png_b64(fig), f.source + " profiles", "Profiles along both diagonals, corner to corner and 15 % beyond.")
 
 
